@@ -1,0 +1,41 @@
+"""MJX maze environments: ``make('antmaze-large')``, ``make('pointmaze-medium', iterations=4)``."""
+
+from __future__ import annotations
+
+from aqm_mjx.envs import mazes
+from aqm_mjx.envs.locomaze import N_PROXIES, MazeEnv, PhysicsOptions, State
+
+AGENTS = ('ant', 'point')
+ENV_NAMES = tuple(f'{a}maze-{m}' for a in AGENTS for m in mazes.MAZE_NAMES)
+_PHYSICS_FIELDS = ('integrator', 'solver', 'iterations', 'ls_iterations', 'impl', 'contact_caps')
+
+
+def parse_name(name: str) -> tuple[str, str]:
+    """``'antmaze-large'`` (or OGBench's ``'antmaze-large-v0'``) -> ``('ant', 'large')``."""
+    if not isinstance(name, str):
+        raise TypeError(f'environment name must be a string, got {type(name).__name__}')
+    base = name[:-3] if name.endswith('-v0') else name
+    if base not in ENV_NAMES:
+        raise ValueError(f'unknown environment {name!r}; expected one of {", ".join(ENV_NAMES)}')
+    agent, maze = base.split('-', 1)
+    return agent[: -len('maze')], maze
+
+
+def make(name: str, **overrides) -> MazeEnv:
+    """Build an environment by name.
+
+    Args:
+        name: ``{ant,point}maze-{arena,medium,large,giant,teleport}``.
+        **overrides: physics options (``integrator``, ``solver``, ``iterations``, ``ls_iterations``,
+            ``impl``, ``contact_caps``) and ``max_episode_steps``.
+    """
+    agent, maze = parse_name(name)
+    unknown = set(overrides) - set(_PHYSICS_FIELDS) - {'max_episode_steps'}
+    if unknown:
+        raise TypeError(f'unknown option(s) {sorted(unknown)} for make({name!r}); '
+                        f'expected {sorted(_PHYSICS_FIELDS) + ["max_episode_steps"]}')
+    physics = PhysicsOptions(**{k: v for k, v in overrides.items() if k in _PHYSICS_FIELDS})
+    return MazeEnv(agent, maze, physics, max_episode_steps=overrides.get('max_episode_steps', 1000))
+
+
+__all__ = ['make', 'parse_name', 'ENV_NAMES', 'MazeEnv', 'PhysicsOptions', 'State', 'N_PROXIES', 'mazes']

@@ -1,0 +1,170 @@
+"""Maze layouts, tasks and the cell <-> world geometry of OGBench's locomaze.
+
+The layouts, tasks and constants are those of ``ogbench/locomaze/maze.py`` (checked against the
+installed ``ogbench`` package in ``tests/test_envs.py``). A layout is an occupancy grid: ``1`` is a
+wall block, ``0`` free floor. Cell ``(i, j)`` is centred at ``x = 4 j - 4, y = 4 i - 4``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+MAZE_UNIT = 4.0  #: side of one maze cell (m)
+MAZE_OFFSET = 4.0  #: world x (y) of column (row) 0 is -MAZE_OFFSET
+MAZE_HEIGHT = 0.5  #: wall height in maze units (walls are 2 m tall)
+START_GOAL_NOISE = 1.0  #: start and goal are cell centres + U(-1, 1) * MAZE_UNIT / 4 per axis
+
+_LAYOUTS = {
+    'arena': [
+        '11111111',
+        '10000001',
+        '10000001',
+        '10000001',
+        '10000001',
+        '10000001',
+        '10000001',
+        '11111111',
+    ],
+    'medium': [
+        '11111111',
+        '10011001',
+        '10010001',
+        '11000111',
+        '10010001',
+        '10100101',
+        '10001001',
+        '11111111',
+    ],
+    'large': [
+        '111111111111',
+        '100001000001',
+        '101101010101',
+        '100000010001',
+        '101111011101',
+        '100101000001',
+        '110101010111',
+        '100100010001',
+        '111111111111',
+    ],
+    'giant': [
+        '1111111111111111',
+        '1010000001100001',
+        '1010110101001101',
+        '1000100100010001',
+        '1011101111110101',
+        '1000100010000101',
+        '1110101001010111',
+        '1000100100010001',
+        '1010101111110101',
+        '1011100010001101',
+        '1000001000100001',
+        '1111111111111111',
+    ],
+    'teleport': [
+        '111111111111',
+        '100000101001',
+        '110100010011',
+        '110111000001',
+        '100001010101',
+        '101101010101',
+        '101101010101',
+        '100001000101',
+        '111111111111',
+    ],
+}
+
+# (init cell, goal cell) of OGBench's evaluation tasks, in OGBench's order (task ids 1..5).
+_TASKS = {
+    'arena': [((1, 1), (6, 6))],
+    'medium': [((1, 1), (6, 6)), ((6, 1), (1, 6)), ((5, 3), (4, 2)), ((6, 5), (6, 1)), ((2, 6), (1, 1))],
+    'large': [((1, 1), (7, 10)), ((5, 4), (7, 1)), ((7, 4), (1, 10)), ((3, 8), (5, 4)), ((1, 1), (5, 4))],
+    'giant': [((1, 1), (10, 14)), ((1, 14), (10, 1)), ((8, 14), (1, 1)), ((8, 3), (5, 12)), ((5, 9), (3, 8))],
+    'teleport': [((1, 10), (7, 1)), ((1, 1), (7, 10)), ((5, 6), (7, 10)), ((7, 1), (7, 10)), ((5, 6), (7, 1))],
+}
+
+# Teleport maze: an inbound portal within TELEPORT_RADIUS * 1.5 of the agent sends it to one of the
+# outbound portals, uniformly at random.
+TELEPORT_IN = ((4, 6), (5, 1))
+TELEPORT_OUT = ((1, 7), (6, 1), (6, 10))
+TELEPORT_RADIUS = 1.0
+
+MAZE_NAMES = tuple(_LAYOUTS)
+
+
+@dataclasses.dataclass(frozen=True)
+class Task:
+    """One evaluation task: start and goal cells and their centres (no noise)."""
+
+    task_id: int  # 1-based, as in OGBench
+    init_ij: tuple[int, int]
+    goal_ij: tuple[int, int]
+    init_xy: tuple[float, float]
+    goal_xy: tuple[float, float]
+
+
+def check_maze_name(maze: str) -> str:
+    if maze not in _LAYOUTS:
+        raise ValueError(f'unknown maze {maze!r}; expected one of {", ".join(MAZE_NAMES)}')
+    return maze
+
+
+def layout(maze: str) -> np.ndarray:
+    """The occupancy grid of a maze: int8 ``[H, W]``, 1 = wall."""
+    rows = _LAYOUTS[check_maze_name(maze)]
+    return np.array([[int(c) for c in r] for r in rows], dtype=np.int8)
+
+
+def ij_to_xy(ij) -> np.ndarray:
+    """Cell centre(s): ``ij [..., 2]`` -> ``xy [..., 2]`` (x from column j, y from row i)."""
+    ij = np.asarray(ij, dtype=np.float64)
+    return np.stack([ij[..., 1] * MAZE_UNIT - MAZE_OFFSET, ij[..., 0] * MAZE_UNIT - MAZE_OFFSET], axis=-1)
+
+
+def tasks(maze: str) -> tuple[Task, ...]:
+    """OGBench's evaluation tasks of a maze (5, or 1 for the arena)."""
+    out = []
+    for k, (init_ij, goal_ij) in enumerate(_TASKS[check_maze_name(maze)]):
+        out.append(Task(k + 1, init_ij, goal_ij, tuple(ij_to_xy(init_ij).tolist()), tuple(ij_to_xy(goal_ij).tolist())))
+    return tuple(out)
+
+
+def validate_grid(grid, maze: str) -> np.ndarray:
+    """Check a user-supplied occupancy grid for ``maze`` and return it as int8 ``[H, W]``.
+
+    Raises:
+        ValueError: wrong number of dimensions, a shape other than the maze's, non-finite values,
+            values other than 0 and 1, or a grid whose border is not all wall (the agent could
+            leave the maze).
+    """
+    ref = layout(maze)
+    arr = np.asarray(grid)
+    if arr.dtype == object:
+        raise ValueError('grid must be a numeric array, got an object array')
+    if arr.ndim != 2:
+        raise ValueError(f'grid must be 2-D [rows, cols]; got shape {arr.shape}')
+    if arr.shape != ref.shape:
+        raise ValueError(f'grid for maze {maze!r} must have shape {ref.shape}; got {arr.shape}')
+    if np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+        raise ValueError('grid contains NaN or inf')
+    bad = ~np.isin(arr, (0, 1))
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise ValueError(f'grid values must be 0 (free) or 1 (wall); cell ({i}, {j}) is {arr[i, j].item()!r}')
+    border = np.concatenate([arr[0], arr[-1], arr[:, 0], arr[:, -1]])
+    if not np.all(border == 1):
+        raise ValueError('grid border must be all walls (1), or the agent could leave the maze')
+    return arr.astype(np.int8)
+
+
+def wall_distance(xy, grid) -> np.ndarray:
+    """Distance from points ``xy [..., 2]`` to the nearest wall block of ``grid [H, W]`` (numpy).
+
+    Negative inside a block. Brute force over all blocks; for checks and plots, not hot loops.
+    """
+    cells = ij_to_xy(np.argwhere(np.asarray(grid) == 1))  # [C, 2]
+    d = np.abs(np.asarray(xy, dtype=np.float64)[..., None, :] - cells) - MAZE_UNIT / 2  # per-axis gap
+    outside = np.linalg.norm(np.maximum(d, 0.0), axis=-1)
+    inside = np.minimum(np.max(d, axis=-1), 0.0)
+    return np.min(outside + inside, axis=-1)
