@@ -316,6 +316,27 @@ def test_ant_never_enters_walls_full(ant):
     assert moved < 0.7
 
 
+def test_ant_blocked_by_corridor_closed_in_half_the_batch(ant):
+    """Ants thrown east at 6 m/s from cell (1, 1): through the corridor where it is open, stopped
+    at the wall face (x = 2 m, torso radius 0.25) where cell (1, 2) is closed; one program."""
+    env, _ = ant
+    n = 8
+    grid = np.broadcast_to(env.layout, (n,) + env.layout.shape).copy()
+    closed = np.arange(n) % 2 == 1
+    assert env.layout[1, 2] == 0
+    grid[closed, 1, 2] = 1
+    start = jnp.broadcast_to(jnp.array([0.9, 0.0]), (n, 2))
+    s = jax.jit(jax.vmap(env.reset_to))(jax.random.split(jax.random.PRNGKey(0), n), start, start + 100.0, jnp.asarray(grid))
+    s = s.replace(data=s.data.replace(qvel=s.data.qvel.at[:, 0].set(6.0)))
+    step = jax.jit(jax.vmap(env.step))
+    for _ in range(15):
+        s = step(s, jnp.zeros((n, 8)))
+    x = np.asarray(s.data.qpos[:, 0])
+    print(f'ant x after the throw: open {np.round(x[~closed], 2)}, closed {np.round(x[closed], 2)}')
+    assert np.all(x[closed] <= 2.0 - 0.25 + 0.03)
+    assert np.all(x[~closed] > 2.5)
+
+
 def test_step_compiles_once_across_grids_and_calls(ant):
     """The timing trap: a step called on its own output, and with another grid, does not retrace."""
     env, _ = ant
