@@ -168,3 +168,42 @@ def wall_distance(xy, grid) -> np.ndarray:
     outside = np.linalg.norm(np.maximum(d, 0.0), axis=-1)
     inside = np.minimum(np.max(d, axis=-1), 0.0)
     return np.min(outside + inside, axis=-1)
+
+
+def geodesic_table(grid, sub: int = 2) -> np.ndarray:
+    """Exact shortest-path distances (m) between the sub-cells of a maze's free space.
+
+    Each cell is split into ``sub x sub`` squares; moves go to the 4 neighbours (one square,
+    ``MAZE_UNIT / sub`` m). Returns float32 ``[H*W*sub*sub, H*W*sub*sub]``, ``inf`` where either
+    square is in a wall or unreachable. Index squares with :func:`xy_to_subcell`. A stand-in for a
+    trained quasimetric in tests and planning checks.
+    """
+    from scipy.sparse import coo_matrix  # pylint: disable=import-outside-toplevel
+    from scipy.sparse.csgraph import shortest_path  # pylint: disable=import-outside-toplevel
+
+    g = np.kron(np.asarray(grid), np.ones((sub, sub), dtype=np.int8))
+    h, w = g.shape
+    free = g == 0
+    idx = np.arange(h * w).reshape(h, w)
+    rows, cols = [], []
+    for a, b in (((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
+                 ((slice(0, -1), slice(None)), (slice(1, None), slice(None)))):
+        ok = free[a] & free[b]
+        rows.append(idx[a][ok])
+        cols.append(idx[b][ok])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    adj = coo_matrix((np.ones(len(r)), (r, c)), shape=(h * w, h * w)).tocsr()
+    out = shortest_path(adj, method='D', directed=False, unweighted=True).astype(np.float32) * (MAZE_UNIT / sub)
+    out[~free.reshape(-1)] = np.inf
+    out[:, ~free.reshape(-1)] = np.inf
+    return out
+
+
+def xy_to_subcell(xy, grid_shape, sub: int = 2) -> np.ndarray:
+    """Index into :func:`geodesic_table` of points ``xy [..., 2]``."""
+    xy = np.asarray(xy, dtype=np.float64)
+    step = MAZE_UNIT / sub
+    col = np.floor((xy[..., 0] + MAZE_OFFSET + MAZE_UNIT / 2) / step).astype(np.int64)
+    row = np.floor((xy[..., 1] + MAZE_OFFSET + MAZE_UNIT / 2) / step).astype(np.int64)
+    h, w = grid_shape[0] * sub, grid_shape[1] * sub
+    return np.clip(row, 0, h - 1) * w + np.clip(col, 0, w - 1)

@@ -1,0 +1,130 @@
+"""Planning on the keypoint graph: Floyd-Warshall (Proposition 3.1), paths, start and goal attachment.
+
+All functions take one graph; ``jax.vmap`` them over a batch of graphs (each environment may have
+pruned different edges). Node indices are int32; -1 means "none".
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from aqm_mjx.keypoints import Dist
+
+
+def floyd_warshall(weights: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """All-pairs shortest paths.
+
+    ``d_k(i, j) = min(d_{k-1}(i, j), d_{k-1}(i, k) + d_{k-1}(k, j))`` for k = 1..K.
+
+    Args:
+        weights: ``[K, K]`` non-negative edge weights, ``inf`` for no edge.
+    Returns:
+        (dist ``[K, K]``, ``inf`` where unreachable; next_hop int32 ``[K, K]``: the node after i on
+        a shortest path from i to j, ``j`` for a direct edge, ``i`` on the diagonal, -1 where
+        unreachable).
+    """
+    k = weights.shape[0]
+    idx = jnp.arange(k, dtype=jnp.int32)
+    w = weights.astype(jnp.float32)
+    w = jnp.where(jnp.eye(k, dtype=bool), 0.0, w)  # weights are non-negative: staying costs 0
+    nxt = jnp.where(jnp.isfinite(w), idx[None, :], -1).astype(jnp.int32)
+
+    def body(m, carry):
+        d, n = carry
+        cand = d[:, m, None] + d[None, m, :]
+        better = cand < d
+        return jnp.where(better, cand, d), jnp.where(better, n[:, m, None], n)
+
+    return jax.lax.fori_loop(0, k, body, (w, nxt))
+
+
+def extract_path(next_hop: jax.Array, i: jax.Array, j: jax.Array, max_len: int) -> tuple[jax.Array, jax.Array]:
+    """Nodes of the shortest path from ``i`` to ``j``: ``[max_len]`` int32 padded with -1, and its
+    number of nodes (0 if unreachable; a path longer than ``max_len`` is cut)."""
+    reachable = (i >= 0) & (j >= 0) & (next_hop[jnp.maximum(i, 0), jnp.maximum(j, 0)] >= 0)
+
+    def body(cur, _):
+        out = cur
+        nxt = jnp.where((cur >= 0) & (cur != j), next_hop[jnp.maximum(cur, 0), j], -1)
+        return nxt, out
+
+    _, path = jax.lax.scan(body, jnp.where(reachable, i, -1).astype(jnp.int32), None, length=max_len)
+    return path, jnp.sum(path >= 0).astype(jnp.int32)
+
+
+def path_cost(weights: jax.Array, path: jax.Array) -> jax.Array:
+    """Sum of edge weights along a -1-padded path ``[L]``."""
+    a, b = path[:-1], path[1:]
+    ok = (a >= 0) & (b >= 0)
+    return jnp.sum(jnp.where(ok, weights[jnp.maximum(a, 0), jnp.maximum(b, 0)], 0.0))
+
+
+@struct.dataclass
+class Plan:
+    """A plan s -> z_first -> ... -> z_last -> g (or s -> g directly).
+
+    Attributes:
+        first: int32 first keypoint (-1 when direct or unreachable).
+        last: int32 last keypoint before the goal.
+        cost: float32 estimated time-to-reach (inf when unreachable).
+        direct: bool, go straight to the goal.
+        reachable: bool.
+    """
+
+    first: jax.Array
+    last: jax.Array
+    cost: jax.Array
+    direct: jax.Array
+    reachable: jax.Array
+
+
+def attach(dist: Dist, z: jax.Array, mask: jax.Array, s: jax.Array, g: jax.Array, tau: float,
+           nearest_fallback: bool = True) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Edges from the state and into the goal.
+
+    ``s -> z_i`` with weight ``d(s, z_i)`` where ``d_sym(s, z_i) < tau``, ``z_j -> g`` with
+    ``d(z_j, g)`` likewise, ``s -> g`` when ``d_sym(s, g) < tau``. With ``nearest_fallback`` a
+    state (goal) with no keypoint within tau is attached to its nearest keypoint under d_sym.
+
+    Returns:
+        (from_s ``[K]``, to_g ``[K]``, direct scalar), ``inf`` for no edge.
+    """
+    ds = jax.vmap(lambda y: dist(s, y))(z)
+    sd = jax.vmap(lambda y: dist(y, s))(z)
+    dg = jax.vmap(lambda y: dist(y, g))(z)
+    gd = jax.vmap(lambda y: dist(g, y))(z)
+
+    def edges(fwd, bwd):
+        dsym = jnp.where(mask, jnp.maximum(fwd, bwd), jnp.inf)
+        within = dsym < tau
+        if nearest_fallback:
+            within = within | ((jnp.arange(z.shape[0]) == jnp.argmin(dsym)) & ~within.any() & mask)
+        return jnp.where(within & mask, fwd, jnp.inf)
+
+    direct_d = dist(s, g)
+    direct = jnp.where(jnp.maximum(direct_d, dist(g, s)) < tau, direct_d, jnp.inf)
+    return edges(ds, sd), edges(dg, gd), direct
+
+
+def plan(dist_kk: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Array) -> Plan:
+    """Best plan through the graph given all-pairs distances ``dist_kk [K, K]`` (from
+    :func:`floyd_warshall`) and the attachment edges of :func:`attach`: minimises
+    ``from_s[i] + dist_kk[i, j] + to_g[j]`` against the direct edge."""
+    total = from_s[:, None] + dist_kk + to_g[None, :]
+    flat = jnp.argmin(total)
+    i, j = jnp.unravel_index(flat, total.shape)
+    via = total[i, j]
+    go_direct = direct <= via
+    cost = jnp.minimum(via, direct)
+    reachable = jnp.isfinite(cost)
+    first = jnp.where(go_direct | ~reachable, -1, i).astype(jnp.int32)
+    last = jnp.where(go_direct | ~reachable, -1, j).astype(jnp.int32)
+    return Plan(first=first, last=last, cost=cost, direct=go_direct & reachable, reachable=reachable)
+
+
+def next_subgoal(next_hop: jax.Array, current: jax.Array, last: jax.Array) -> jax.Array:
+    """The keypoint after ``current`` on the way to ``last``; -1 means: go to the goal."""
+    done = (current < 0) | (current == last)
+    return jnp.where(done, -1, next_hop[jnp.maximum(current, 0), jnp.maximum(last, 0)]).astype(jnp.int32)

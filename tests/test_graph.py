@@ -1,0 +1,181 @@
+"""Keypoints (IWE, FPS, random), the keypoint graph and Floyd-Warshall, against brute force and SciPy."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import floyd_warshall as scipy_fw
+
+from aqm_mjx import graph, keypoints, plan
+from aqm_mjx.envs import mazes
+
+
+def random_graphs(rng, b, k, p_edge=0.1):
+    w = rng.uniform(0.5, 10.0, (b, k, k)).astype(np.float32)
+    w[rng.random((b, k, k)) > p_edge] = np.inf
+    return w
+
+
+@pytest.mark.parametrize('k,b', [(8, 16), (40, 8), (256, 2)])
+def test_floyd_warshall_equals_scipy_distances_and_paths(k, b):
+    rng = np.random.default_rng(k)
+    w = random_graphs(rng, b, k, p_edge=min(1.0, 4.0 / k))
+    d, nxt = jax.jit(jax.vmap(plan.floyd_warshall))(jnp.asarray(w))
+    d, nxt = np.asarray(d), np.asarray(nxt)
+    for g in range(b):
+        ref = scipy_fw(np.where(np.isfinite(w[g]), w[g], 0.0), directed=True)
+        np.testing.assert_allclose(d[g], ref, rtol=1e-5)
+    assert np.isinf(d).any() and np.isfinite(d[~np.eye(k, dtype=bool)[None].repeat(b, 0)]).any()
+    # Every extracted path is a real path whose summed weight equals the distance.
+    over_j = jax.vmap(lambda n, i, j: plan.extract_path(n, i, j, k), (None, None, 0))
+    ext = jax.jit(jax.vmap(jax.vmap(over_j, (None, 0, None)), (0, None, None)))
+    idx = jnp.arange(k)
+    paths, lens = ext(jnp.asarray(nxt), idx, idx)
+    cost = jax.jit(jax.vmap(jax.vmap(jax.vmap(plan.path_cost, (None, 0)), (None, 0))))(jnp.asarray(w), paths)  # graph, i, j
+    paths, lens, cost = np.asarray(paths), np.asarray(lens), np.asarray(cost)
+    finite = np.isfinite(d)
+    np.testing.assert_allclose(cost[finite], d[finite], rtol=1e-4, atol=1e-4)
+    assert np.all(lens[~finite] == 0)
+    gi, ii, jj = np.nonzero(finite)
+    assert np.all(paths[gi, ii, jj, 0] == ii)
+    assert np.all(paths[gi, ii, jj, lens[gi, ii, jj] - 1] == jj)
+
+
+def directed_grid_quasimetric(n=12):
+    """Points on an n x n grid; moving +x costs 1, -x costs 3, +-y costs 1 (one-way-ish streets).
+    Exact shortest paths: d((x1, y1), (x2, y2)) = max(dx, 0) + 3 max(-dx, 0) + |dy|."""
+    pts = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing='ij'), -1).reshape(-1, 2).astype(np.float32)
+
+    def d(a, b):
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        return jnp.maximum(dx, 0) + 3 * jnp.maximum(-dx, 0) + jnp.abs(dy)
+
+    return pts, d
+
+
+@pytest.mark.parametrize('selector', ['iwe', 'fps'])
+def test_iwe_separated_and_covering_brute_force(selector):
+    pts, d = directed_grid_quasimetric()
+    fn = keypoints.iwe if selector == 'iwe' else keypoints.farthest_point
+    delta = 4.0
+    kp = jax.jit(lambda k: fn(d, jnp.asarray(pts), k, delta, 64, chunk=50))(jax.random.PRNGKey(0))
+    assert not bool(kp.overflow)
+    z = pts[np.asarray(kp.index)[np.asarray(kp.mask)]]
+    dm = np.asarray(graph.pairwise(d, jnp.asarray(pts), jnp.asarray(pts)))
+    dsym = np.maximum(dm, dm.T)
+    zi = np.asarray(kp.index)[np.asarray(kp.mask)]
+    sep = dsym[np.ix_(zi, zi)] + np.eye(len(zi)) * 1e9
+    assert sep.min() >= delta  # delta-separated
+    assert dsym[:, zi].min(axis=1).max() < delta  # every candidate within delta of a keypoint
+    assert len(zi) == int(kp.count) and len(set(zi.tolist())) == len(zi)
+    # IWE: each keypoint after the first attaches to an earlier one at distance >= delta (the wavefront).
+    par, att = np.asarray(kp.parent)[: len(zi)], np.asarray(kp.attach)[: len(zi)]
+    assert par[0] == -1 and np.all(par[1:] < np.arange(1, len(zi)))
+    np.testing.assert_allclose(att[1:], dsym[zi[1:], zi[par[1:]]], rtol=1e-6)
+    if selector == 'iwe':
+        assert np.all(att[1:] >= delta) and np.all(att[1:] < 2 * delta)
+
+
+def test_iwe_count_scales_like_area_over_delta_squared():
+    """Euclidean metric on a uniform unit square. A delta-separated delta-cover of the square has
+    count >= 1 / (pi delta^2) (covering) and <= (1 + delta)^2 / (pi delta^2 / 4) (packing)."""
+    rng = np.random.default_rng(0)
+    pts = jnp.asarray(rng.random((20000, 2)), jnp.float32)
+    d = lambda a, b: jnp.linalg.norm(a - b)  # noqa: E731
+    run = jax.jit(lambda k, dl: keypoints.iwe(d, pts, k, dl, 600, chunk=8192))
+    c = {}
+    for delta in (0.05, 0.1, 0.2):
+        kp = run(jax.random.PRNGKey(1), delta)
+        assert not bool(kp.overflow)
+        c[delta] = int(kp.count) * delta ** 2
+        assert 1 / np.pi <= c[delta] <= 4 * (1 + delta) ** 2 / np.pi, (delta, int(kp.count))
+    # Scaling: count * delta^2 is the same constant within 25% across a 4x range of delta (16x in count).
+    assert max(c.values()) / min(c.values()) < 1.25, c
+    assert run._cache_size() == 1  # delta is data, not a recompile
+
+
+def test_overflow_flag_and_random_and_batch_variants():
+    pts, d = directed_grid_quasimetric()
+    kp = keypoints.iwe(d, jnp.asarray(pts), jax.random.PRNGKey(0), 1.5, 10)
+    assert bool(kp.overflow) and int(kp.count) == 10
+    r = keypoints.uniform_random(jnp.asarray(pts), jax.random.PRNGKey(0), 20, valid=jnp.arange(len(pts)) < 15)
+    assert int(r.count) == 15 and set(np.asarray(r.index)[np.asarray(r.mask)].tolist()) == set(range(15))
+    b = keypoints.iwe_best_of_batches(d, jnp.asarray(pts), jax.random.PRNGKey(0), 4.0, 64, n_batches=4, batch_size=64)
+    idx = np.asarray(b.index)[np.asarray(b.mask)]
+    assert len(idx) == int(b.count) > 1 and idx.max() < len(pts)
+    dm = np.asarray(graph.pairwise(d, jnp.asarray(pts[idx]), jnp.asarray(pts[idx])))
+    assert (np.maximum(dm, dm.T) + np.eye(len(idx)) * 1e9).min() >= 4.0
+
+
+def test_graph_edges_and_parent_edges_and_components():
+    pts, d = directed_grid_quasimetric()
+    kp = keypoints.iwe(d, jnp.asarray(pts), jax.random.PRNGKey(0), 4.0, 64)
+    z = jnp.asarray(pts)[jnp.maximum(kp.index, 0)]
+    w = np.asarray(graph.build_graph(d, z, kp.mask, 4.0))
+    m = np.asarray(kp.mask)
+    dm = np.asarray(graph.pairwise(d, z, z))
+    dsym = np.maximum(dm, dm.T)
+    off = m[:, None] & m[None, :] & ~np.eye(64, dtype=bool)
+    np.testing.assert_array_equal(np.isfinite(w) & off, (dsym < 8.0) & off)  # tau = 2 delta
+    np.testing.assert_allclose(w[np.isfinite(w) & off], dm[np.isfinite(w) & off])  # directed weights
+    assert np.any(w[np.isfinite(w) & off] != w.T[np.isfinite(w) & off])  # asymmetric where the metric is
+    assert np.all(np.isinf(w[~m]))
+    _, n = graph.components(jnp.asarray(w), kp.mask)
+    assert int(n) == 1
+    # A tiny tau leaves isolated nodes; parent edges reconnect everything.
+    w_small = graph.build_graph(d, z, kp.mask, 4.0, tau=1.0)
+    _, n_small = graph.components(w_small, kp.mask)
+    assert int(n_small) == int(kp.count)
+    _, n_par = graph.components(graph.build_graph(d, z, kp.mask, 4.0, tau=1.0, keypoints=kp), kp.mask)
+    assert int(n_par) == 1
+
+
+def test_attach_plan_and_next_subgoal_on_a_line():
+    # Keypoints on a line at x = 0, 2, 4, 6, 8; Euclidean; tau = 2.5.
+    z = jnp.array([[0.0], [2.0], [4.0], [6.0], [8.0]])
+    d = lambda a, b: jnp.abs(a[0] - b[0])  # noqa: E731
+    mask = jnp.ones(5, bool)
+    w = graph.build_graph(d, z, mask, delta=1.25)
+    dk, nxt = plan.floyd_warshall(w)
+    fs, tg, direct = plan.attach(d, z, mask, jnp.array([-0.5]), jnp.array([8.5]), tau=2.5)
+    np.testing.assert_array_equal(np.isfinite(np.asarray(fs)), [1, 0, 0, 0, 0])  # d_sym < tau only to z_0
+    p = plan.plan(dk, fs, tg, direct)
+    assert int(p.first) == 0 and int(p.last) == 4 and not bool(p.direct)
+    np.testing.assert_allclose(float(p.cost), 9.0, rtol=1e-6)
+    hops = [int(p.first)]
+    while hops[-1] != -1:
+        hops.append(int(plan.next_subgoal(nxt, jnp.asarray(hops[-1]), p.last)))
+    assert hops == [0, 1, 2, 3, 4, -1]
+    # Pruning the edge 2 -> 3 (as a blocked corridor) makes the goal unreachable on a line.
+    dk2, _ = plan.floyd_warshall(w.at[2, 3].set(jnp.inf))
+    p2 = plan.plan(dk2, fs, tg, direct)
+    assert not bool(p2.reachable) and int(p2.first) == -1
+    # Close start and goal: go direct.
+    fs, tg, direct = plan.attach(d, z, mask, jnp.array([3.0]), jnp.array([4.5]), tau=2.5)
+    assert bool(plan.plan(dk, fs, tg, direct).direct)
+
+
+@pytest.mark.parametrize('maze', mazes.MAZE_NAMES)
+def test_maze_graph_connected_at_two_delta(maze):
+    """Exact maze distance as the quasimetric: IWE + tau = 2 delta gives a connected graph (one
+    component per connected region of free space: the teleport maze has 2 without its portals)."""
+    grid = mazes.layout(maze)
+    sub = 4
+    table = jnp.asarray(mazes.geodesic_table(grid, sub))
+    rng = np.random.default_rng(0)
+    free = np.argwhere(grid == 0)
+    xy = mazes.ij_to_xy(free[rng.integers(len(free), size=20000)]) + rng.uniform(-2, 2, (20000, 2))
+    cand = jnp.asarray(mazes.xy_to_subcell(xy, grid.shape, sub))[:, None]
+    d = lambda a, b: table[a[0], b[0]]  # noqa: E731
+    regions = 2 if maze == 'teleport' else 1
+    t1 = mazes.geodesic_table(grid, 1)
+    free = np.flatnonzero(grid.reshape(-1) == 0)
+    assert len({tuple(np.isfinite(t1[f, free])) for f in free}) == regions
+    # Paper scale: delta = 15 control steps; the ant walks about 1.4 m/s = 0.14 m per step -> 2.1 m.
+    for delta_m in (2.1, 4.0):
+        kp = keypoints.iwe(d, cand, jax.random.PRNGKey(0), delta_m, 400)
+        z = cand[jnp.maximum(kp.index, 0)]
+        w = graph.build_graph(d, z, kp.mask, delta_m)
+        _, n = graph.components(w, kp.mask)
+        print(f'{maze}: delta {delta_m} m (~{delta_m / 0.14:.0f} steps) -> {int(kp.count)} keypoints, {int(n)} component(s)')
+        assert not bool(kp.overflow) and int(n) == regions
