@@ -31,13 +31,57 @@ def cmd_envs(a):
     return 0
 
 
+def keypoint_map_panels(maze: str, deltas, n_candidates: int = 20000, sub: int = 4, seed: int = 0):
+    """IWE keypoints and tau = 2 delta edges with the exact maze distance as the quasimetric, one
+    panel per delta (the paper's Figures 11-13, with a stand-in for a trained quasimetric)."""
+    import jax  # pylint: disable=import-outside-toplevel
+    import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx import graph, keypoints  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
+
+    grid = mazes.layout(maze)
+    table = jnp.asarray(mazes.geodesic_table(grid, sub))
+    rng = np.random.default_rng(seed)
+    free = np.argwhere(grid == 0)
+    xy = mazes.ij_to_xy(free[rng.integers(len(free), size=n_candidates)]) + rng.uniform(-1.9, 1.9, (n_candidates, 2))
+    cand = jnp.asarray(mazes.xy_to_subcell(xy, grid.shape, sub))[:, None]
+
+    @jax.jit
+    def select(table, cand, key, delta):  # data as arguments: no constant folding of the table
+        def dist(x, y):
+            return table[x[0], y[0]]
+        return keypoints.iwe(dist, cand, key, delta, 512)
+
+    def dist(x, y):
+        return table[x[0], y[0]]
+
+    panels = []
+    for delta in deltas:
+        kp = select(table, cand, jax.random.PRNGKey(seed), float(delta))
+        idx = np.asarray(kp.index)[np.asarray(kp.mask)]
+        w = graph.build_graph(dist, cand[jnp.asarray(idx)], jnp.ones(len(idx), bool), float(delta))
+        _, ncomp = graph.components(w, jnp.ones(len(idx), bool))
+        panels.append(dict(nodes_xy=xy[idx], edges=graph.edge_list(w),
+                           title=f'delta {delta:g} m: {len(idx)} keypoints, {int(ncomp)} component(s)'))
+    return grid, panels
+
+
 def cmd_render(a):
     import numpy as np  # pylint: disable=import-outside-toplevel
 
     from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
-    from aqm_mjx.envs.render import render_maze  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.envs.render import render_maze, render_panels  # pylint: disable=import-outside-toplevel
 
     _, maze = envs.parse_name(a.env)
+    if a.deltas:
+        grid, panels = keypoint_map_panels(maze, a.deltas)
+        render_panels(grid, panels, a.out)
+        for p in panels:
+            print(p['title'])
+        print(f'wrote {a.out}')
+        return 0
     tasks = envs.mazes.tasks(maze)
     render_maze(envs.mazes.layout(maze), a.out, start_xy=np.array([t.init_xy for t in tasks]),
                 goal_xy=np.array([t.goal_xy for t in tasks]), title=f'{a.env}: evaluation tasks')
@@ -119,9 +163,11 @@ def main(argv=None):
     r.set_defaults(fn=cmd_run)
     e = sub.add_parser('envs', help='list the environments and their evaluation tasks')
     e.set_defaults(fn=cmd_envs)
-    d = sub.add_parser('render', help='draw a maze with its evaluation tasks as a PNG')
+    d = sub.add_parser('render', help='draw a maze with its evaluation tasks (or keypoint maps) as a PNG')
     d.add_argument('--env', default='antmaze-medium')
     d.add_argument('--out', default='maze.png')
+    d.add_argument('--deltas', type=float, nargs='*', default=None,
+                   help='draw IWE keypoint maps for these delta values (m), with the exact maze distance')
     d.set_defaults(fn=cmd_render)
     a = p.parse_args(argv)
     try:

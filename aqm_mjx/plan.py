@@ -13,31 +13,95 @@ from flax import struct
 from aqm_mjx.keypoints import Dist
 
 
-def floyd_warshall(weights: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """All-pairs shortest paths.
+def shortest_distances(weights: jax.Array, block: int = 8) -> jax.Array:
+    """All-pairs shortest-path distances by Floyd-Warshall (Proposition 3.1).
 
-    ``d_k(i, j) = min(d_{k-1}(i, j), d_{k-1}(i, k) + d_{k-1}(k, j))`` for k = 1..K.
+    ``d_k(i, j) = min(d_{k-1}(i, j), d_{k-1}(i, k) + d_{k-1}(k, j))`` for k = 1..K, computed
+    ``block`` pivots at a time: unrolling the recursion, ``d_k(i, j) = min(d_0(i, j), min_{t <= k}
+    c_t(i) + r_t(j))`` with ``c_t``, ``r_t`` the pivot's column and row when it is processed. The
+    pivots' own columns and rows are updated one pivot at a time (O(K) each), then one pass over
+    the matrix applies the whole block: the same result with 1/block of the memory traffic.
 
     Args:
-        weights: ``[K, K]`` non-negative edge weights, ``inf`` for no edge.
+        weights: ``[K, K]`` non-negative edge weights, ``inf`` for no edge (the diagonal is taken
+            as 0).
     Returns:
-        (dist ``[K, K]``, ``inf`` where unreachable; next_hop int32 ``[K, K]``: the node after i on
-        a shortest path from i to j, ``j`` for a direct edge, ``i`` on the diagonal, -1 where
-        unreachable).
+        ``[K, K]`` float32 distances, ``inf`` where unreachable.
     """
     k = weights.shape[0]
+    pad = (-k) % block
+    w = jnp.where(jnp.eye(k, dtype=bool), 0.0, weights.astype(jnp.float32))
+    if pad:
+        w = jnp.pad(w, ((0, pad), (0, pad)), constant_values=jnp.inf)
+    kp = k + pad
+
+    def one_block(b, d):
+        piv = b * block + jnp.arange(block)
+
+        def pivot(t, c):
+            cols, rows, col_hist, row_hist = c
+            col, row = cols[:, t], rows[t, :]
+            cols = jnp.minimum(cols, col[:, None] + row[piv][None, :])
+            rows = jnp.minimum(rows, col[piv][:, None] + row[None, :])
+            return cols, rows, col_hist.at[t].set(col), row_hist.at[t].set(row)
+
+        hist = jnp.zeros((block, kp), jnp.float32)
+        _, _, col_hist, row_hist = jax.lax.fori_loop(0, block, pivot, (d[:, piv], d[piv, :], hist, hist))
+        return jnp.minimum(d, jnp.min(col_hist[:, :, None] + row_hist[:, None, :], axis=0))
+
+    d = jax.lax.fori_loop(0, kp // block, one_block, w)
+    return d[:k, :k]
+
+
+def next_hops(weights: jax.Array, dist: jax.Array) -> jax.Array:
+    """Next-hop matrix from the distances: ``next[i, j] = argmin_{k != i} w(i, k) + d(k, j)``.
+
+    Args:
+        weights: ``[K, K]`` edge weights; dist: ``[K, K]`` from :func:`shortest_distances`.
+    Returns:
+        int32 ``[K, K]``: the node after i on a shortest path to j, i on the diagonal, -1 where j is
+        unreachable. With positive weights, following it from i reaches j along a shortest path.
+    """
+    k = weights.shape[0]
+    eye = jnp.eye(k, dtype=bool)
+    w = jnp.where(eye, jnp.inf, weights.astype(jnp.float32))
+    via = jnp.argmin(w[:, :, None] + dist[None, :, :], axis=1).astype(jnp.int32)
     idx = jnp.arange(k, dtype=jnp.int32)
-    w = weights.astype(jnp.float32)
-    w = jnp.where(jnp.eye(k, dtype=bool), 0.0, w)  # weights are non-negative: staying costs 0
-    nxt = jnp.where(jnp.isfinite(w), idx[None, :], -1).astype(jnp.int32)
+    return jnp.where(eye, idx[:, None], jnp.where(jnp.isfinite(dist), via, -1))
 
-    def body(m, carry):
-        d, n = carry
-        cand = d[:, m, None] + d[None, m, :]
-        better = cand < d
-        return jnp.where(better, cand, d), jnp.where(better, n[:, m, None], n)
 
-    return jax.lax.fori_loop(0, k, body, (w, nxt))
+def next_hop(weights: jax.Array, dist: jax.Array, i: jax.Array, j: jax.Array) -> jax.Array:
+    """One entry of :func:`next_hops` in O(K) (what an agent needs at each switch)."""
+    k = weights.shape[0]
+    cost = jnp.where(jnp.arange(k) == i, jnp.inf, weights[i] + dist[:, j])
+    return jnp.where(i == j, i, jnp.where(jnp.isfinite(dist[i, j]), jnp.argmin(cost), -1)).astype(jnp.int32)
+
+
+def floyd_warshall(weights: jax.Array, block: int = 8) -> tuple[jax.Array, jax.Array]:
+    """All-pairs shortest paths of one graph: (dist ``[K, K]``, next_hop int32 ``[K, K]``).
+
+    See :func:`shortest_distances` and :func:`next_hops`; ``jax.vmap`` it over graphs, or use
+    :func:`floyd_warshall_batch`, which keeps the working set in cache on CPUs.
+    """
+    d = shortest_distances(weights, block)
+    return d, next_hops(weights, d)
+
+
+def floyd_warshall_batch(weights: jax.Array, chunk: int = 8, with_next: bool = True, block: int = 8):
+    """:func:`floyd_warshall` over ``weights [B, K, K]``, ``chunk`` graphs at a time (vmapped inside
+    a ``lax.map``): a whole batch at once streams every matrix through memory K / block times.
+
+    Returns:
+        (dist ``[B, K, K]``, next_hop ``[B, K, K]`` or None when ``with_next`` is False).
+    """
+    b = weights.shape[0]
+    chunk = max(1, min(chunk, b))
+    pad = (-b) % chunk
+    w = jnp.concatenate([weights, jnp.broadcast_to(weights[:1], (pad,) + weights.shape[1:])]) if pad else weights
+    fn = (lambda x: floyd_warshall(x, block)) if with_next else (lambda x: shortest_distances(x, block))
+    out = jax.lax.map(jax.vmap(fn), w.reshape((-1, chunk) + weights.shape[1:]))
+    out = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:])[:b], out)
+    return out if with_next else (out, None)
 
 
 def extract_path(next_hop: jax.Array, i: jax.Array, j: jax.Array, max_len: int) -> tuple[jax.Array, jax.Array]:

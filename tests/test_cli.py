@@ -22,3 +22,10 @@ def test_envs_and_render(tmp_path, capsys):
 def test_unknown_env_is_a_clear_error(capsys):
     assert cli.main(['render', '--env', 'antmaze-huge']) == 2
     assert "unknown environment 'antmaze-huge'" in capsys.readouterr().err
+
+
+def test_keypoint_maps_picture(tmp_path, capsys):
+    png = tmp_path / 'kp.png'
+    assert cli.main(['render', '--env', 'antmaze-medium', '--deltas', '4', '8', '--out', str(png)]) == 0
+    out = capsys.readouterr().out
+    assert out.count('1 component(s)') == 2 and png.stat().st_size > 10000

@@ -16,7 +16,7 @@ def random_graphs(rng, b, k, p_edge=0.1):
     return w
 
 
-@pytest.mark.parametrize('k,b', [(8, 16), (40, 8), (256, 2)])
+@pytest.mark.parametrize('k,b', [(8, 16), (37, 5), (40, 8), (256, 2)])
 def test_floyd_warshall_equals_scipy_distances_and_paths(k, b):
     rng = np.random.default_rng(k)
     w = random_graphs(rng, b, k, p_edge=min(1.0, 4.0 / k))
@@ -39,6 +39,21 @@ def test_floyd_warshall_equals_scipy_distances_and_paths(k, b):
     gi, ii, jj = np.nonzero(finite)
     assert np.all(paths[gi, ii, jj, 0] == ii)
     assert np.all(paths[gi, ii, jj, lens[gi, ii, jj] - 1] == jj)
+
+
+def test_batched_and_single_entry_forms_agree():
+    rng = np.random.default_rng(7)
+    w = jnp.asarray(random_graphs(rng, 11, 30, p_edge=0.15))
+    d, n = jax.vmap(plan.floyd_warshall)(w)
+    db, nb = jax.jit(lambda x: plan.floyd_warshall_batch(x, chunk=4))(w)  # 11 graphs in chunks of 4
+    np.testing.assert_array_equal(np.asarray(db), np.asarray(d))
+    np.testing.assert_array_equal(np.asarray(nb), np.asarray(n))
+    d_only, none = plan.floyd_warshall_batch(w, chunk=4, with_next=False)
+    assert none is None
+    np.testing.assert_array_equal(np.asarray(d_only), np.asarray(d))
+    ij = jnp.arange(30)
+    one = jax.vmap(jax.vmap(jax.vmap(plan.next_hop, (None, None, None, 0)), (None, None, 0, None)), (0, 0, None, None))(w, d, ij, ij)
+    np.testing.assert_array_equal(np.asarray(one), np.asarray(n))
 
 
 def directed_grid_quasimetric(n=12):

@@ -129,3 +129,29 @@ def render_maze(grid, path: Optional[str] = None, *, figsize=None, dpi: int = 10
         fig.savefig(path)
         plt.close(fig)
     return fig
+
+
+def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, ncols: int = 3, dpi: int = 100):
+    """Several maze pictures side by side (e.g. keypoint maps for several delta values).
+
+    Args:
+        grid: ``[H, W]`` occupancy grid shared by the panels.
+        panels: one dict of :func:`draw_maze` keyword arguments per panel (``title`` included).
+        path: PNG to write (the figure is then closed).
+    """
+    plt = _plt()
+    h, w = np.asarray(grid).shape
+    n = len(panels)
+    ncols = min(ncols, n)
+    nrows = (n + ncols - 1) // ncols
+    fig, axes = plt.subplots(nrows, ncols, figsize=(ncols * (0.45 * w + 1.0), nrows * (0.45 * h + 1.0)), dpi=dpi,
+                             squeeze=False)
+    for ax, kw in zip(axes.ravel(), panels):
+        draw_maze(ax, grid, **kw)
+    for ax in axes.ravel()[n:]:
+        ax.axis('off')
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path)
+        plt.close(fig)
+    return fig
