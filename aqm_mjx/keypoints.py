@@ -66,7 +66,9 @@ def _greedy(dist: Dist, latents, key, delta, max_keypoints, valid, chunk, pick_f
     dist_sym = sym(dist)
     valid = jnp.ones((n,), bool) if valid is None else valid
     # The first keypoint is a uniformly sampled valid candidate.
-    first = jax.random.choice(key, n, p=valid / jnp.maximum(valid.sum(), 1))
+    # Gumbel-argmax, not random.choice: choice's cumsum over a constant mask would be constant-folded
+    # by XLA at compile time (seconds at 10^6 candidates).
+    first = jnp.argmax(jnp.where(valid, jax.random.gumbel(key, (n,)), -jnp.inf))
     d0 = _to_one(dist_sym, latents, valid, latents[first], chunk)
     k = max_keypoints
     init = dict(

@@ -13,6 +13,47 @@ from flax import struct
 from aqm_mjx.keypoints import Dist
 
 
+def _blocked_fw(weights: jax.Array, block: int, with_next: bool):
+    k = weights.shape[0]
+    pad = (-k) % block
+    w = jnp.where(jnp.eye(k, dtype=bool), 0.0, weights.astype(jnp.float32))
+    if pad:
+        w = jnp.pad(w, ((0, pad), (0, pad)), constant_values=jnp.inf)
+        w = jnp.where(jnp.eye(k + pad, dtype=bool), 0.0, w)
+    kp = k + pad
+    idx = jnp.arange(kp, dtype=jnp.int32)
+    nxt = jnp.where(jnp.isfinite(w), idx[None, :], -1).astype(jnp.int32)
+
+    def one_block(b, carry):
+        d, n = carry
+        piv = b * block + jnp.arange(block)
+
+        def pivot(t, c):
+            cols, rows, ncols, nrows, col_hist, row_hist, ncol_hist = c
+            col, row, ncol = cols[:, t], rows[t, :], ncols[:, t]  # ncol: next hop from i to pivot t
+            cand = col[:, None] + row[piv][None, :]  # i -> pivot t -> pivot u
+            better = cand < cols
+            cols, ncols = jnp.where(better, cand, cols), jnp.where(better, ncol[:, None], ncols)
+            cand = col[piv][:, None] + row[None, :]  # pivot u -> pivot t -> j
+            better = cand < rows
+            rows, nrows = jnp.where(better, cand, rows), jnp.where(better, ncol[piv][:, None], nrows)
+            return cols, rows, ncols, nrows, col_hist.at[t].set(col), row_hist.at[t].set(row), ncol_hist.at[t].set(ncol)
+
+        hist = jnp.zeros((block, kp), jnp.float32)
+        init = (d[:, piv], d[piv, :], n[:, piv], n[piv, :], hist, hist, jnp.zeros((block, kp), jnp.int32))
+        _, _, _, _, col_hist, row_hist, ncol_hist = jax.lax.fori_loop(0, block, pivot, init)
+        via = col_hist[:, :, None] + row_hist[:, None, :]  # [block, K, K]
+        best = jnp.min(via, axis=0)
+        better = best < d
+        if with_next:
+            t_best = jnp.argmin(via, axis=0)
+            n = jnp.where(better, jnp.take_along_axis(ncol_hist.T, t_best, axis=1), n)
+        return jnp.where(better, best, d), n
+
+    d, n = jax.lax.fori_loop(0, kp // block, one_block, (w, nxt))
+    return d[:k, :k], n[:k, :k]
+
+
 def shortest_distances(weights: jax.Array, block: int = 8) -> jax.Array:
     """All-pairs shortest-path distances by Floyd-Warshall (Proposition 3.1).
 
@@ -28,29 +69,7 @@ def shortest_distances(weights: jax.Array, block: int = 8) -> jax.Array:
     Returns:
         ``[K, K]`` float32 distances, ``inf`` where unreachable.
     """
-    k = weights.shape[0]
-    pad = (-k) % block
-    w = jnp.where(jnp.eye(k, dtype=bool), 0.0, weights.astype(jnp.float32))
-    if pad:
-        w = jnp.pad(w, ((0, pad), (0, pad)), constant_values=jnp.inf)
-    kp = k + pad
-
-    def one_block(b, d):
-        piv = b * block + jnp.arange(block)
-
-        def pivot(t, c):
-            cols, rows, col_hist, row_hist = c
-            col, row = cols[:, t], rows[t, :]
-            cols = jnp.minimum(cols, col[:, None] + row[piv][None, :])
-            rows = jnp.minimum(rows, col[piv][:, None] + row[None, :])
-            return cols, rows, col_hist.at[t].set(col), row_hist.at[t].set(row)
-
-        hist = jnp.zeros((block, kp), jnp.float32)
-        _, _, col_hist, row_hist = jax.lax.fori_loop(0, block, pivot, (d[:, piv], d[piv, :], hist, hist))
-        return jnp.minimum(d, jnp.min(col_hist[:, :, None] + row_hist[:, None, :], axis=0))
-
-    d = jax.lax.fori_loop(0, kp // block, one_block, w)
-    return d[:k, :k]
+    return _blocked_fw(weights, block, with_next=False)[0]
 
 
 def next_hops(weights: jax.Array, dist: jax.Array) -> jax.Array:
@@ -78,13 +97,17 @@ def next_hop(weights: jax.Array, dist: jax.Array, i: jax.Array, j: jax.Array) ->
 
 
 def floyd_warshall(weights: jax.Array, block: int = 8) -> tuple[jax.Array, jax.Array]:
-    """All-pairs shortest paths of one graph: (dist ``[K, K]``, next_hop int32 ``[K, K]``).
+    """All-pairs shortest paths of one graph, tracking next hops inside the (blocked) recursion.
 
-    See :func:`shortest_distances` and :func:`next_hops`; ``jax.vmap`` it over graphs, or use
-    :func:`floyd_warshall_batch`, which keeps the working set in cache on CPUs.
+    Args:
+        weights: ``[K, K]`` non-negative edge weights, ``inf`` for no edge.
+    Returns:
+        (dist ``[K, K]``, ``inf`` where unreachable; next_hop int32 ``[K, K]``: the node after i on
+        a shortest path from i to j, ``j`` for a direct edge, ``i`` on the diagonal, -1 where
+        unreachable). ``jax.vmap`` it over graphs, or use :func:`floyd_warshall_batch`, which
+        keeps the working set in cache on CPUs.
     """
-    d = shortest_distances(weights, block)
-    return d, next_hops(weights, d)
+    return _blocked_fw(weights, block, with_next=True)
 
 
 def floyd_warshall_batch(weights: jax.Array, chunk: int = 8, with_next: bool = True, block: int = 8):

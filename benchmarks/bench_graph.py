@@ -80,7 +80,7 @@ def bench_iwe(n, delta, kmax, chunk):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('--ks', type=int, nargs='+', default=[64, 160, 256], help='graph sizes K')
+    p.add_argument('--ks', type=int, nargs='*', default=[64, 160, 256], help='graph sizes K (none: skip Floyd-Warshall)')
     p.add_argument('--batches', type=int, nargs='+', default=[1, 16, 256, 1024], help='graphs per batch')
     p.add_argument('--max-elements', type=float, default=1.2e8, help='skip B*K*K above this (memory/time)')
     p.add_argument('--reps', type=int, default=3)
