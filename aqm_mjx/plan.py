@@ -110,14 +110,21 @@ def floyd_warshall(weights: jax.Array, block: int = 8) -> tuple[jax.Array, jax.A
     return _blocked_fw(weights, block, with_next=True)
 
 
-def floyd_warshall_batch(weights: jax.Array, chunk: int = 8, with_next: bool = True, block: int = 8):
+def floyd_warshall_batch(weights: jax.Array, chunk: int | None = None, with_next: bool = True, block: int = 8):
     """:func:`floyd_warshall` over ``weights [B, K, K]``, ``chunk`` graphs at a time (vmapped inside
-    a ``lax.map``): a whole batch at once streams every matrix through memory K / block times.
+    a ``lax.map``).
+
+    On a CPU a whole batch at once streams every matrix through memory K / block times; chunks of
+    8 graphs stay in cache (measured 2.5x faster at K = 160, B = 256). On a GPU the ``lax.map``
+    serialises the chunks (measured 8x slower on an H100), so ``chunk=None`` picks 8 on CPU and
+    the whole batch elsewhere.
 
     Returns:
         (dist ``[B, K, K]``, next_hop ``[B, K, K]`` or None when ``with_next`` is False).
     """
     b = weights.shape[0]
+    if chunk is None:
+        chunk = 8 if jax.default_backend() == 'cpu' else b
     chunk = max(1, min(chunk, b))
     pad = (-b) % chunk
     w = jnp.concatenate([weights, jnp.broadcast_to(weights[:1], (pad,) + weights.shape[1:])]) if pad else weights
