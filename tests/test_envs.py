@@ -73,6 +73,11 @@ def test_bad_names_and_options():
     with pytest.raises(ValueError, match='unknown maze'):
         mazes.layout('tiny')
     assert envs.parse_name('antmaze-large-v0') == ('ant', 'large')
+    if not locomaze.warp_available():
+        with pytest.raises(RuntimeError, match=r"impl='warp' needs MuJoCo Warp"):
+            envs.make('antmaze-medium', impl='warp')
+    with pytest.raises(ValueError, match='contact_caps'):
+        envs.make('antmaze-medium', contact_caps=(0, 4))
 
 
 def test_malformed_grids_are_rejected():
