@@ -1,0 +1,242 @@
+"""Datasets: OGBench ``.npz`` files in and out, a device-resident dataset and its goal sampler.
+
+File format (OGBench's, written with ``np.savez_compressed``): ``observations [N, D]`` float32,
+``actions [N, A]`` float32, ``terminals [N]`` bool (True at the last state of each trajectory),
+optionally ``qpos [N, nq]`` and ``qvel [N, nv]``. As in ``ogbench.utils.load_dataset``, the last
+state of a trajectory is not the source of a transition. Files are read with
+``allow_pickle=False``; every problem found raises :class:`DatasetError` naming it.
+
+On device the dataset is kept *compact*: all N states once, ``valid[t]`` marking the states that
+have a successor ``t + 1`` in the same trajectory, and ``traj_end[t]`` the index of the last state
+of ``t``'s trajectory, which is what keeps every sampled goal inside its trajectory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+import zipfile
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+REQUIRED = ('observations', 'actions', 'terminals')
+OPTIONAL = ('qpos', 'qvel')
+
+
+class DatasetError(ValueError):
+    """A dataset file or array that cannot be used; the message says what is wrong."""
+
+
+# ---------------------------------------------------------------------------------------------- files
+def validate(data: dict, obs_size: Optional[int] = None, action_size: Optional[int] = None, name: str = 'dataset') -> None:
+    """Check raw arrays in OGBench's file layout. Raises :class:`DatasetError`."""
+    for k in REQUIRED:
+        if k not in data:
+            raise DatasetError(f'{name}: missing key {k!r} (found {sorted(data)})')
+    obs, act, term = data['observations'], data['actions'], data['terminals']
+    n = len(term)
+    if n == 0:
+        raise DatasetError(f'{name}: empty (0 states)')
+    if obs.ndim != 2 or act.ndim != 2 or term.ndim != 1:
+        raise DatasetError(f'{name}: expected observations [N, D], actions [N, A], terminals [N]; got shapes '
+                           f'{obs.shape}, {act.shape}, {term.shape}')
+    for k in REQUIRED + OPTIONAL:
+        if k in data and len(data[k]) != n:
+            raise DatasetError(f'{name}: {k} has {len(data[k])} rows but terminals has {n}')
+    if obs_size is not None and obs.shape[1] != obs_size:
+        raise DatasetError(f'{name}: observations are {obs.shape[1]}-d but the environment expects {obs_size}')
+    if action_size is not None and act.shape[1] != action_size:
+        raise DatasetError(f'{name}: actions are {act.shape[1]}-d but the environment expects {action_size}')
+    for k in ('observations', 'actions') + OPTIONAL:
+        if k in data:
+            a = data[k]
+            if not np.issubdtype(a.dtype, np.number):
+                raise DatasetError(f'{name}: {k} has dtype {a.dtype}, expected a number type')
+            bad = ~np.isfinite(a)
+            if bad.any():
+                row = int(np.argwhere(bad)[0][0])
+                raise DatasetError(f'{name}: {k} contains NaN or inf ({int(bad.sum())} values, first at row {row})')
+    if not term.any():
+        raise DatasetError(f'{name}: no trajectory end is marked (terminals is all False)')
+    if not bool(term[-1]):
+        raise DatasetError(f'{name}: the last state is not marked terminal; the final trajectory is cut')
+
+
+def read_ogbench(path: str, obs_size: Optional[int] = None, action_size: Optional[int] = None,
+                 add_info: bool = True) -> dict:
+    """Read an OGBench ``.npz`` file as numpy arrays (one read, no extra copies).
+
+    Args:
+        path: the ``.npz`` file.
+        obs_size, action_size: expected widths (e.g. ``env.obs_size``), checked when given.
+        add_info: also read ``qpos``/``qvel`` when present.
+    Returns:
+        dict with ``observations`` float32 ``[N, D]``, ``actions`` float32 ``[N, A]``,
+        ``terminals`` bool ``[N]`` (and ``qpos``, ``qvel``).
+    """
+    if not os.path.exists(path):
+        raise DatasetError(f'{path}: no such file')
+    try:
+        f = np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, OSError, ValueError) as e:
+        raise DatasetError(f'{path}: not a readable .npz file ({e})') from e
+    if not isinstance(f, np.lib.npyio.NpzFile):
+        raise DatasetError(f'{path}: expected an .npz archive of named arrays, got a single array')
+    out = {}
+    with f:
+        keys = REQUIRED + (OPTIONAL if add_info else ())
+        for k in keys:
+            if k not in f.files:
+                if k in REQUIRED:
+                    raise DatasetError(f'{path}: missing key {k!r} (found {sorted(f.files)})')
+                continue
+            try:
+                a = f[k]
+            except ValueError as e:  # object arrays need pickle, which we never allow
+                raise DatasetError(f'{path}: {k} is an object array (it would need pickle to load); '
+                                   'save plain numeric arrays') from e
+            if k == 'terminals':
+                a = a.astype(bool, copy=False)
+            else:
+                if not np.issubdtype(a.dtype, np.number):
+                    raise DatasetError(f'{path}: {k} has dtype {a.dtype}, expected a number type')
+                a = a.astype(np.float32, copy=False)
+            out[k] = a
+    validate(out, obs_size, action_size, name=path)
+    return out
+
+
+def write_ogbench(path: str, data: dict) -> None:
+    """Write arrays as an OGBench ``.npz`` (terminals as bool). Atomic: a failure never leaves a
+    partial file, and an existing file is replaced only once the new one is complete."""
+    validate(data, name=path)
+    arrays = {k: np.asarray(data[k]) for k in REQUIRED + OPTIONAL if k in data}
+    arrays['terminals'] = arrays['terminals'].astype(bool)
+    for k in ('observations', 'actions') + OPTIONAL:
+        if k in arrays:
+            arrays[k] = arrays[k].astype(np.float32, copy=False)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, suffix='.npz.tmp')
+    try:
+        with os.fdopen(fd, 'wb') as fh:
+            np.savez_compressed(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def val_path(path: str) -> str:
+    """OGBench's validation twin: ``x.npz`` -> ``x-val.npz``."""
+    return path[:-4] + '-val.npz' if path.endswith('.npz') else path + '-val'
+
+
+def transitions(data: dict) -> dict:
+    """``ogbench.utils.load_dataset(compact_dataset=False)``'s view of raw arrays (for checks)."""
+    term = data['terminals'].astype(np.float32)
+    ob_mask = (1.0 - term).astype(bool)
+    next_mask = np.concatenate([[False], ob_mask[:-1]])
+    new_term = np.concatenate([term[1:], [1.0]])
+    return dict(observations=data['observations'][ob_mask], actions=data['actions'][ob_mask],
+                next_observations=data['observations'][next_mask], terminals=new_term[ob_mask].astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------------- device
+@struct.dataclass
+class Dataset:
+    """A compact dataset on device.
+
+    Attributes:
+        observations: ``[N, D]`` every state once.
+        actions: ``[N, A]`` (the last state's action has no successor and is never sampled).
+        valid: bool ``[N]``, True where ``t + 1`` is the next state of the same trajectory.
+        traj_end: int32 ``[N]`` index of the last state of ``t``'s trajectory.
+        valid_index: int32 ``[M]`` the indices where ``valid`` (transition sources).
+    """
+
+    observations: jax.Array
+    actions: jax.Array
+    valid: jax.Array
+    traj_end: jax.Array
+    valid_index: jax.Array
+
+    @property
+    def size(self) -> int:
+        return int(self.observations.shape[0])
+
+
+def to_device(data: dict, device=None) -> Dataset:
+    """Put raw arrays (from :func:`read_ogbench` or a collector) on device, one copy each."""
+    validate(data)
+    term = np.asarray(data['terminals']).astype(bool, copy=False)
+    n = len(term)
+    ends = np.flatnonzero(term)
+    traj_end = ends[np.searchsorted(ends, np.arange(n))].astype(np.int32)
+    valid = ~term
+    put = (lambda a: jax.device_put(a, device)) if device is not None else jax.device_put
+    return Dataset(observations=put(np.asarray(data['observations'], np.float32)),
+                   actions=put(np.asarray(data['actions'], np.float32)), valid=put(valid),
+                   traj_end=put(traj_end), valid_index=put(np.flatnonzero(valid).astype(np.int32)))
+
+
+@dataclasses.dataclass(frozen=True)
+class GoalSampling:
+    """How goals and subgoals are drawn (OGBench's GCDataset semantics)."""
+
+    p_current: float = 0.0  # goal = the state itself
+    p_trajectory: float = 1.0  # goal = a later state of the same trajectory
+    p_random: float = 0.0  # goal = a uniformly random dataset state
+    geometric: bool = True  # trajectory goals: offset ~ Geometric(1 - discount) (else uniform over the rest)
+    discount: float = 0.99  # of the geometric offsets
+    subgoal_offset: int = 25  # subgoal = state t + k, clamped at the trajectory's end
+
+    def __post_init__(self):
+        ps = (self.p_current, self.p_trajectory, self.p_random)
+        if min(ps) < 0 or abs(sum(ps) - 1.0) > 1e-6:
+            raise ValueError(f'goal probabilities must be >= 0 and sum to 1; got {ps}')
+        if not 0.0 < self.discount < 1.0:
+            raise ValueError(f'discount must be in (0, 1); got {self.discount}')
+        if self.subgoal_offset < 1:
+            raise ValueError(f'subgoal_offset must be >= 1; got {self.subgoal_offset}')
+
+
+@struct.dataclass
+class Batch:
+    """A sampled batch; every field has a leading ``[B]``. ``*_index`` are dataset indices."""
+
+    observations: jax.Array
+    actions: jax.Array
+    next_observations: jax.Array
+    goals: jax.Array
+    subgoals: jax.Array
+    index: jax.Array
+    goal_index: jax.Array
+    subgoal_index: jax.Array
+    goal_kind: jax.Array  # 0 current, 1 trajectory, 2 random
+
+
+def sample(ds: Dataset, key: jax.Array, batch_size: int, cfg: GoalSampling = GoalSampling()) -> Batch:
+    """Sample transitions with goals and subgoals; jittable (``batch_size`` and ``cfg`` static)."""
+    k_idx, k_kind, k_off, k_rand = jax.random.split(key, 4)
+    idx = ds.valid_index[jax.random.randint(k_idx, (batch_size,), 0, ds.valid_index.shape[0])]
+    end = ds.traj_end[idx]
+    if cfg.geometric:
+        off = jax.random.geometric(k_off, 1.0 - cfg.discount, (batch_size,)).astype(jnp.int32)  # >= 1
+        traj_goal = jnp.minimum(idx + off, end)
+    else:
+        u = jax.random.uniform(k_off, (batch_size,))
+        traj_goal = jnp.minimum(idx + 1 + jnp.floor(u * (end - idx)).astype(jnp.int32), end)
+    rand_goal = jax.random.randint(k_rand, (batch_size,), 0, ds.size)
+    kind = jax.random.choice(k_kind, 3, (batch_size,), p=jnp.array([cfg.p_current, cfg.p_trajectory, cfg.p_random]))
+    goal = jnp.where(kind == 0, idx, jnp.where(kind == 1, traj_goal, rand_goal))
+    sub = jnp.minimum(idx + cfg.subgoal_offset, end)
+    obs = ds.observations
+    return Batch(observations=obs[idx], actions=ds.actions[idx], next_observations=obs[idx + 1], goals=obs[goal],
+                 subgoals=obs[sub], index=idx, goal_index=goal, subgoal_index=sub, goal_kind=kind.astype(jnp.int32))
