@@ -302,23 +302,15 @@ def test_one_control_step_parity_with_ogbench(ant):
     assert np.percentile(err[near], 95) < 2e-2
 
 
-def test_ant_never_enters_walls_short(ant):
-    """(b), CPU-sized: 64 envs x 100 random-action steps started 0.6 to 3.4 m from walls."""
+@pytest.mark.parametrize('steps,seed', [(100, 0), pytest.param(1000, 1, marks=pytest.mark.slow)])
+def test_ant_never_enters_walls(ant, steps, seed):
+    """(b): 64 envs x ``steps`` random-action steps in the large maze, each ant thrown at its
+    nearest wall at 4 m/s first; 1000 steps (as stated) is the slow case, 100 the CPU-sized one."""
     env, _ = ant
-    dist, moved = wall_check(env, 64, 100, seed=0)
+    dist, moved = wall_check(env, 64, steps, seed=seed)
     print(f'min torso-wall distance {dist.min():.3f} m, max step displacement {moved:.3f} m')
-    assert dist.min() >= 0.25 - 0.03
-    assert moved < 0.7
-
-
-@pytest.mark.slow
-def test_ant_never_enters_walls_full(ant):
-    """(b) as stated: 64 envs x 1000 random-action steps in the large maze."""
-    env, _ = ant
-    dist, moved = wall_check(env, 64, 1000, seed=1)
-    print(f'min torso-wall distance {dist.min():.3f} m, max step displacement {moved:.3f} m')
-    assert dist.min() >= 0.25 - 0.03
-    assert moved < 0.7
+    assert dist.min() >= 0.25 - 0.03  # the torso sphere's radius, as OGBench's own walls allow
+    assert moved < 0.7  # reach (< 1.3 m) + one step's displacement stays under half a cell
 
 
 def test_ant_blocked_by_corridor_closed_in_half_the_batch(ant):
