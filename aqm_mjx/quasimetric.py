@@ -1,0 +1,117 @@
+"""Interval Quasimetric Embeddings with the maxmean reduction (paper eq. 1-2; Wang & Isola 2022).
+
+A state is encoded by an MLP into a latent of N components of M numbers each. For component i, the
+distance from x to y is the length of the union of the intervals ``[x_ij, max(x_ij, y_ij)]`` over
+j = 1..M; the quasimetric is ``alpha * max_i d_i + (1 - alpha) * mean_i d_i`` (eq. 2 as the paper
+writes it; OGBench names the weights the other way round) with a trainable ``alpha = sigmoid(p)``. Every ``d_i`` is a quasimetric (0 on the diagonal, non-negative,
+triangle inequality), and the mean and the max of quasimetrics are quasimetrics.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+
+def interval_union_length(x: jax.Array, y: jax.Array) -> jax.Array:
+    """Length of ``union_j [x_j, max(x_j, y_j)]`` over the last axis: ``x, y [..., M]`` -> ``[...]``.
+
+    Endpoints are sorted; coverage between consecutive endpoints is the running count of interval
+    starts minus ends, and a gap counts when that coverage is positive.
+    """
+    valid = (x < y).astype(x.dtype)
+    ends = jnp.concatenate([x, jnp.maximum(x, y)], axis=-1)  # [..., 2M]
+    inc = jnp.concatenate([valid, -valid], axis=-1)  # +1 at a start, -1 at an end (0 for empty intervals)
+    order = jnp.argsort(ends, axis=-1)
+    s = jnp.take_along_axis(ends, order, axis=-1)
+    cover = jnp.cumsum(jnp.take_along_axis(inc, order, axis=-1), axis=-1)[..., :-1]
+    return jnp.sum(jnp.where(cover > 0.5, s[..., 1:] - s[..., :-1], 0.0), axis=-1)
+
+
+def iqe_components(zx: jax.Array, zy: jax.Array, n_components: int) -> jax.Array:
+    """Per-component IQE distances: latents ``[..., N*M]`` -> ``[..., N]``."""
+    shape = zx.shape[:-1] + (n_components, zx.shape[-1] // n_components)
+    return interval_union_length(zx.reshape(shape), jnp.broadcast_to(zy, zx.shape).reshape(shape))
+
+
+def maxmean(components: jax.Array, alpha: jax.Array) -> jax.Array:
+    """``alpha * max + (1 - alpha) * mean`` over the last axis (paper eq. 2)."""
+    return alpha * jnp.max(components, axis=-1) + (1.0 - alpha) * jnp.mean(components, axis=-1)
+
+
+def iqe_distance(zx: jax.Array, zy: jax.Array, n_components: int, alpha: jax.Array) -> jax.Array:
+    """IQE-maxmean distance from latents ``zx [..., N*M]`` to ``zy [..., N*M]``: ``[...]``."""
+    return maxmean(iqe_components(zx, zy, n_components), alpha)
+
+
+class Encoder(nn.Module):
+    """MLP with GELU then LayerNorm after every hidden layer: ``[..., D] -> [..., N*M]``."""
+
+    hidden: Sequence[int] = (512, 512, 512)
+    latent: int = 512
+
+    @nn.compact
+    def __call__(self, x):
+        for h in self.hidden:
+            x = nn.LayerNorm()(nn.gelu(nn.Dense(h)(x)))
+        return nn.Dense(self.latent)(x)
+
+
+class IQE(nn.Module):
+    """Encoder + IQE-maxmean head. ``__call__(x, y) -> d(x, y)``; ``encode`` and ``distance``
+    let callers encode once and compare latents (keypoint selection, planning).
+
+    Attributes:
+        hidden: encoder widths (paper: 3 x 512).
+        n_components, component_size: N and M (paper: 512 x 1; OGBench's QRL: 64 x 8).
+    """
+
+    hidden: Sequence[int] = (512, 512, 512)
+    n_components: int = 512
+    component_size: int = 1
+
+    def setup(self):
+        self.encoder = Encoder(self.hidden, self.n_components * self.component_size)
+        self.alpha_logit = self.param('alpha_logit', nn.initializers.zeros, ())
+
+    def encode(self, x):
+        return self.encoder(x)
+
+    def alpha(self):
+        return jax.nn.sigmoid(self.alpha_logit)
+
+    def distance(self, zx, zy):
+        return iqe_distance(zx, zy, self.n_components, self.alpha())
+
+    def __call__(self, x, y):
+        return self.distance(self.encode(x), self.encode(y))
+
+
+# ------------------------------------------------------------------------------------------ QRL
+def push_term(d: jax.Array, offset: float, scale: float) -> jax.Array:
+    """``-omega(d) = softplus(scale * (offset - d)) / scale`` (paper eq. 4 and Appendix 10)."""
+    return jax.nn.softplus(scale * (offset - d)) / scale
+
+
+def qrl_losses(d_pos: jax.Array, d_goal: jax.Array, lam: jax.Array, epsilon: float, offset: float, scale: float):
+    """The QRL objective as the paper states it (eq. 3-4, Algorithm 1 lines 4-10).
+
+    Args:
+        d_pos: ``[B]`` d(s, s') on transitions; d_goal: ``[B]`` d(s, g) on sampled goals.
+        lam: the Lagrange multiplier (>= 0).
+        epsilon: slack of the local constraint; offset, scale: m and s of omega (Table 5).
+    Returns:
+        (quasimetric loss ``mean(stop_grad(lam) * close + push)``, lambda loss whose gradient
+        ascends on the constraint violation ``-lam * stop_grad(mean(close))``, info dict) where
+        ``close = relu(d_pos - 1)^2 - epsilon^2``.
+    """
+    close = jnp.square(jax.nn.relu(d_pos - 1.0)) - epsilon ** 2
+    push = push_term(d_goal, offset, scale)
+    loss = jnp.mean(jax.lax.stop_gradient(lam) * close + push)
+    lam_loss = -lam * jax.lax.stop_gradient(jnp.mean(close))
+    info = {'qrl/close': jnp.mean(close), 'qrl/push': jnp.mean(push), 'qrl/lambda': lam,
+            'qrl/d_pos_mean': jnp.mean(d_pos), 'qrl/d_goal_mean': jnp.mean(d_goal)}
+    return loss, lam_loss, info

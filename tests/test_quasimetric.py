@@ -1,0 +1,67 @@
+"""IQE-maxmean: interval-union lengths by brute force and the quasimetric axioms."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from aqm_mjx import quasimetric as qm
+
+
+def test_interval_union_length_hand_computed():
+    # Intervals [0, 2], [1, 3], [5, 6]: union length 3 + 1 = 4; [2, 2] and y < x are empty.
+    x = jnp.array([0.0, 1.0, 5.0, 2.0, 4.0])
+    y = jnp.array([2.0, 3.0, 6.0, 2.0, 1.0])
+    assert float(qm.interval_union_length(x, y)) == pytest.approx(4.0)
+    # Reversed: [2, 2], [3, 3], [6, 6], [2, 2], [1, 4] -> length 3.
+    assert float(qm.interval_union_length(y, x)) == pytest.approx(3.0)
+
+
+def test_interval_union_length_matches_brute_force():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 1, (200, 8))
+    y = rng.uniform(0, 1, (200, 8))
+    grid = np.linspace(0, 1, 20001)[:-1] + 0.5 / 20000  # midpoints of a fine grid
+    covered = ((grid[None, None] >= x[..., None]) & (grid[None, None] < np.maximum(x, y)[..., None])).any(1)
+    brute = covered.mean(-1)
+    ours = np.asarray(qm.interval_union_length(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32)))
+    np.testing.assert_allclose(ours, brute, atol=2e-4)
+
+
+@pytest.mark.parametrize('n,m', [(64, 8), (512, 1), (16, 4)])
+def test_quasimetric_axioms_with_random_parameters(n, m):
+    model = qm.IQE(hidden=(64, 64), n_components=n, component_size=m)
+    x = jax.random.normal(jax.random.PRNGKey(1), (3, 256, 29))
+    params = model.init(jax.random.PRNGKey(0), x[0], x[1])
+    params['params']['alpha_logit'] = jnp.array(0.7)  # alpha strictly inside (0, 1)
+    d = jax.jit(lambda a, b: model.apply(params, a, b))
+    dxx, dxy, dyz, dxz, dyx = d(x[0], x[0]), d(x[0], x[1]), d(x[1], x[2]), d(x[0], x[2]), d(x[1], x[0])
+    np.testing.assert_allclose(np.asarray(dxx), 0.0, atol=1e-6)
+    assert float(dxy.min()) >= 0.0 and float(dxy.min()) > 0.0
+    assert np.all(np.asarray(dxz) <= np.asarray(dxy + dyz) + 1e-4)  # triangle inequality
+    assert np.abs(np.asarray(dxy - dyx)).max() > 1e-3  # asymmetric in general
+    # maxmean by hand on the component distances.
+    zx = model.apply(params, x[0], method=qm.IQE.encode)
+    zy = model.apply(params, x[1], method=qm.IQE.encode)
+    comps = qm.iqe_components(zx, zy, n)
+    alpha = jax.nn.sigmoid(0.7)
+    np.testing.assert_allclose(np.asarray(dxy), np.asarray(alpha * comps.max(-1) + (1 - alpha) * comps.mean(-1)), rtol=1e-5)
+
+
+def test_qrl_losses_hand_computed():
+    d_pos = jnp.array([0.5, 1.5, 3.0])  # relu(d - 1)^2 = 0, 0.25, 4
+    d_goal = jnp.array([10.0, 60.0, 50.0])
+    lam = jnp.array(2.0)
+    loss, lam_loss, info = qm.qrl_losses(d_pos, d_goal, lam, epsilon=0.25, offset=50.0, scale=0.01)
+    close = np.array([0.0, 0.25, 4.0]) - 0.0625
+    push = np.log1p(np.exp(0.01 * (50.0 - np.array([10.0, 60.0, 50.0])))) / 0.01
+    # Mean over the batch of lam * close + push.
+    np.testing.assert_allclose(float(loss), 2.0 * close.mean() + push.mean(), rtol=1e-5)
+    np.testing.assert_allclose(float(info['qrl/push']), push.mean(), rtol=1e-5)
+    # lambda's gradient ascends on the violation: d(lam_loss)/d(lam) = -mean(close) < 0 here.
+    g = jax.grad(lambda l: qm.qrl_losses(d_pos, d_goal, l, 0.25, 50.0, 0.01)[1])(lam)
+    np.testing.assert_allclose(float(g), -close.mean(), rtol=1e-5)
+    # No gradient reaches lambda through the quasimetric loss, and push decreases as d_goal grows.
+    assert float(jax.grad(lambda l: qm.qrl_losses(d_pos, d_goal, l, 0.25, 50.0, 0.01)[0])(lam)) == 0.0
+    gd = jax.grad(lambda dg: qm.qrl_losses(d_pos, dg, lam, 0.25, 50.0, 0.01)[0])(d_goal)
+    assert np.all(np.asarray(gd) < 0)
