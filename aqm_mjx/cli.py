@@ -48,15 +48,12 @@ def keypoint_map_panels(maze: str, deltas, n_candidates: int = 20000, sub: int =
     xy = mazes.ij_to_xy(free[rng.integers(len(free), size=n_candidates)]) + rng.uniform(-1.9, 1.9, (n_candidates, 2))
     cand = jnp.asarray(mazes.xy_to_subcell(xy, grid.shape, sub))[:, None]
 
-    @jax.jit
-    def select(table, cand, key, delta):  # data as arguments: no constant folding of the table
-        def dist(x, y):
-            return table[x[0], y[0]]
-        return keypoints.iwe(dist, cand, key, delta, 512)
+    def lookup(table):
+        return lambda x, y: table[x[0], y[0]]
 
-    def dist(x, y):
-        return table[x[0], y[0]]
-
+    # The table and candidates are arguments: captured as constants XLA would constant-fold them.
+    select = jax.jit(lambda table, cand, key, delta: keypoints.iwe(lookup(table), cand, key, delta, 512))
+    dist = lookup(table)
     panels = []
     for delta in deltas:
         kp = select(table, cand, jax.random.PRNGKey(seed), float(delta))

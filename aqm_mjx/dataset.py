@@ -6,8 +6,8 @@ optionally ``qpos [N, nq]`` and ``qvel [N, nv]``. As in ``ogbench.utils.load_dat
 state of a trajectory is not the source of a transition. Files are read with
 ``allow_pickle=False``; every problem found raises :class:`DatasetError` naming it.
 
-On device the dataset is kept *compact*: all N states once, ``valid[t]`` marking the states that
-have a successor ``t + 1`` in the same trajectory, and ``traj_end[t]`` the index of the last state
+On device the dataset is kept *compact*: all N states once, ``valid_index`` listing the states
+that have a successor ``t + 1`` in the same trajectory, and ``traj_end[t]`` the index of the last state
 of ``t``'s trajectory, which is what keeps every sampled goal inside its trajectory.
 """
 
@@ -156,14 +156,13 @@ class Dataset:
     Attributes:
         observations: ``[N, D]`` every state once.
         actions: ``[N, A]`` (the last state's action has no successor and is never sampled).
-        valid: bool ``[N]``, True where ``t + 1`` is the next state of the same trajectory.
         traj_end: int32 ``[N]`` index of the last state of ``t``'s trajectory.
-        valid_index: int32 ``[M]`` the indices where ``valid`` (transition sources).
+        valid_index: int32 ``[M]`` transition sources: the states whose ``t + 1`` is the next state of
+            the same trajectory (every state but the last of each trajectory).
     """
 
     observations: jax.Array
     actions: jax.Array
-    valid: jax.Array
     traj_end: jax.Array
     valid_index: jax.Array
 
@@ -179,11 +178,10 @@ def to_device(data: dict, device=None) -> Dataset:
     n = len(term)
     ends = np.flatnonzero(term)
     traj_end = ends[np.searchsorted(ends, np.arange(n))].astype(np.int32)
-    valid = ~term
     put = (lambda a: jax.device_put(a, device)) if device is not None else jax.device_put
     return Dataset(observations=put(np.asarray(data['observations'], np.float32)),
-                   actions=put(np.asarray(data['actions'], np.float32)), valid=put(valid),
-                   traj_end=put(traj_end), valid_index=put(np.flatnonzero(valid).astype(np.int32)))
+                   actions=put(np.asarray(data['actions'], np.float32)), traj_end=put(traj_end),
+                   valid_index=put(np.flatnonzero(~term).astype(np.int32)))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -112,7 +112,7 @@ def waypoint_command(xy: jax.Array, goal_xy: jax.Array, next_cell: jax.Array, gr
     h, w = grid_shape
 
     def cell(p):
-        ij = jnp.floor((p[::-1] + mazes.MAZE_OFFSET + 0.5 * mazes.MAZE_UNIT) / mazes.MAZE_UNIT).astype(jnp.int32)
+        ij = mazes.xy_to_ij(p)
         return jnp.clip(ij[0], 0, h - 1) * w + jnp.clip(ij[1], 0, w - 1)
 
     c, g = cell(xy), cell(goal_xy)

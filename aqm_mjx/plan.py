@@ -15,12 +15,9 @@ from aqm_mjx.keypoints import Dist
 
 def _blocked_fw(weights: jax.Array, block: int, with_next: bool):
     k = weights.shape[0]
-    pad = (-k) % block
-    w = jnp.where(jnp.eye(k, dtype=bool), 0.0, weights.astype(jnp.float32))
-    if pad:
-        w = jnp.pad(w, ((0, pad), (0, pad)), constant_values=jnp.inf)
-        w = jnp.where(jnp.eye(k + pad, dtype=bool), 0.0, w)
-    kp = k + pad
+    kp = k + (-k) % block
+    w = jnp.pad(weights.astype(jnp.float32), ((0, kp - k), (0, kp - k)), constant_values=jnp.inf)
+    w = jnp.where(jnp.eye(kp, dtype=bool), 0.0, w)  # weights are non-negative: staying costs 0
     idx = jnp.arange(kp, dtype=jnp.int32)
     nxt = jnp.where(jnp.isfinite(w), idx[None, :], -1).astype(jnp.int32)
 
@@ -29,19 +26,19 @@ def _blocked_fw(weights: jax.Array, block: int, with_next: bool):
         piv = b * block + jnp.arange(block)
 
         def pivot(t, c):
-            cols, rows, ncols, nrows, col_hist, row_hist, ncol_hist = c
+            # The pivots' next hops to j are not needed: the block pass takes a path's first hop
+            # from i to the pivot (ncols); the pivots' rows only carry distances.
+            cols, rows, ncols, col_hist, row_hist, ncol_hist = c
             col, row, ncol = cols[:, t], rows[t, :], ncols[:, t]  # ncol: next hop from i to pivot t
             cand = col[:, None] + row[piv][None, :]  # i -> pivot t -> pivot u
             better = cand < cols
             cols, ncols = jnp.where(better, cand, cols), jnp.where(better, ncol[:, None], ncols)
-            cand = col[piv][:, None] + row[None, :]  # pivot u -> pivot t -> j
-            better = cand < rows
-            rows, nrows = jnp.where(better, cand, rows), jnp.where(better, ncol[piv][:, None], nrows)
-            return cols, rows, ncols, nrows, col_hist.at[t].set(col), row_hist.at[t].set(row), ncol_hist.at[t].set(ncol)
+            rows = jnp.minimum(rows, col[piv][:, None] + row[None, :])  # pivot u -> pivot t -> j
+            return cols, rows, ncols, col_hist.at[t].set(col), row_hist.at[t].set(row), ncol_hist.at[t].set(ncol)
 
         hist = jnp.zeros((block, kp), jnp.float32)
-        init = (d[:, piv], d[piv, :], n[:, piv], n[piv, :], hist, hist, jnp.zeros((block, kp), jnp.int32))
-        _, _, _, _, col_hist, row_hist, ncol_hist = jax.lax.fori_loop(0, block, pivot, init)
+        init = (d[:, piv], d[piv, :], n[:, piv], hist, hist, jnp.zeros((block, kp), jnp.int32))
+        _, _, _, col_hist, row_hist, ncol_hist = jax.lax.fori_loop(0, block, pivot, init)
         via = col_hist[:, :, None] + row_hist[:, None, :]  # [block, K, K]
         best = jnp.min(via, axis=0)
         better = best < d
@@ -72,25 +69,9 @@ def shortest_distances(weights: jax.Array, block: int = 8) -> jax.Array:
     return _blocked_fw(weights, block, with_next=False)[0]
 
 
-def next_hops(weights: jax.Array, dist: jax.Array) -> jax.Array:
-    """Next-hop matrix from the distances: ``next[i, j] = argmin_{k != i} w(i, k) + d(k, j)``.
-
-    Args:
-        weights: ``[K, K]`` edge weights; dist: ``[K, K]`` from :func:`shortest_distances`.
-    Returns:
-        int32 ``[K, K]``: the node after i on a shortest path to j, i on the diagonal, -1 where j is
-        unreachable. With positive weights, following it from i reaches j along a shortest path.
-    """
-    k = weights.shape[0]
-    eye = jnp.eye(k, dtype=bool)
-    w = jnp.where(eye, jnp.inf, weights.astype(jnp.float32))
-    via = jnp.argmin(w[:, :, None] + dist[None, :, :], axis=1).astype(jnp.int32)
-    idx = jnp.arange(k, dtype=jnp.int32)
-    return jnp.where(eye, idx[:, None], jnp.where(jnp.isfinite(dist), via, -1))
-
-
 def next_hop(weights: jax.Array, dist: jax.Array, i: jax.Array, j: jax.Array) -> jax.Array:
-    """One entry of :func:`next_hops` in O(K) (what an agent needs at each switch)."""
+    """The node after ``i`` on a shortest path to ``j``, from the distances alone, in O(K):
+    ``argmin_{k != i} w(i, k) + d(k, j)`` (``i`` when ``i == j``, -1 when ``j`` is unreachable)."""
     k = weights.shape[0]
     cost = jnp.where(jnp.arange(k) == i, jnp.inf, weights[i] + dist[:, j])
     return jnp.where(i == j, i, jnp.where(jnp.isfinite(dist[i, j]), jnp.argmin(cost), -1)).astype(jnp.int32)
@@ -140,9 +121,8 @@ def extract_path(next_hop: jax.Array, i: jax.Array, j: jax.Array, max_len: int) 
     reachable = (i >= 0) & (j >= 0) & (next_hop[jnp.maximum(i, 0), jnp.maximum(j, 0)] >= 0)
 
     def body(cur, _):
-        out = cur
         nxt = jnp.where((cur >= 0) & (cur != j), next_hop[jnp.maximum(cur, 0), j], -1)
-        return nxt, out
+        return nxt, cur
 
     _, path = jax.lax.scan(body, jnp.where(reachable, i, -1).astype(jnp.int32), None, length=max_len)
     return path, jnp.sum(path >= 0).astype(jnp.int32)

@@ -3,8 +3,9 @@
 A state is encoded by an MLP into a latent of N components of M numbers each. For component i, the
 distance from x to y is the length of the union of the intervals ``[x_ij, max(x_ij, y_ij)]`` over
 j = 1..M; the quasimetric is ``alpha * max_i d_i + (1 - alpha) * mean_i d_i`` (eq. 2 as the paper
-writes it; OGBench names the weights the other way round) with a trainable ``alpha = sigmoid(p)``. Every ``d_i`` is a quasimetric (0 on the diagonal, non-negative,
-triangle inequality), and the mean and the max of quasimetrics are quasimetrics.
+writes it; OGBench names the weights the other way round) with a trainable ``alpha = sigmoid(p)``.
+Every ``d_i`` is a quasimetric (0 on the diagonal, non-negative, triangle inequality), and the mean
+and the max of quasimetrics are quasimetrics.
 """
 
 from __future__ import annotations

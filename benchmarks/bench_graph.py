@@ -84,7 +84,7 @@ def main(argv=None):
     p.add_argument('--batches', type=int, nargs='+', default=[1, 16, 256, 1024], help='graphs per batch')
     p.add_argument('--max-elements', type=float, default=1.2e8, help='skip B*K*K above this (memory/time)')
     p.add_argument('--reps', type=int, default=3)
-    p.add_argument('--iwe-sizes', type=int, nargs='+', default=[100_000, 1_000_000])
+    p.add_argument('--iwe-sizes', type=int, nargs='*', default=[100_000, 1_000_000], help='candidate counts (none: skip IWE)')
     p.add_argument('--iwe-deltas', type=float, nargs='+', default=[0.12, 0.07], help='delta values (K ~ 60, 180)')
     p.add_argument('--chunk', type=int, default=65536)
     a = p.parse_args(argv)

@@ -225,8 +225,7 @@ class MazeEnv:
     # ------------------------------------------------------------------ geometry
     def xy_to_ij(self, xy: jax.Array) -> jax.Array:
         """Cell index of positions: ``xy [..., 2]`` -> int32 ``ij [..., 2]`` (row i from y, column j from x)."""
-        ij = jnp.floor((xy[..., ::-1] + mazes.MAZE_OFFSET + 0.5 * mazes.MAZE_UNIT) / mazes.MAZE_UNIT)
-        return ij.astype(jnp.int32)
+        return mazes.xy_to_ij(xy)
 
     def proxy_positions(self, xy: jax.Array, grid: jax.Array) -> jax.Array:
         """Where the wall proxies go for an agent at ``xy [2]`` in ``grid [H, W]``: ``[N_PROXIES, 3]``.

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 
 MAZE_UNIT = 4.0  #: side of one maze cell (m)
@@ -120,6 +121,13 @@ def ij_to_xy(ij) -> np.ndarray:
     """Cell centre(s): ``ij [..., 2]`` -> ``xy [..., 2]`` (x from column j, y from row i)."""
     ij = np.asarray(ij, dtype=np.float64)
     return np.stack([ij[..., 1] * MAZE_UNIT - MAZE_OFFSET, ij[..., 0] * MAZE_UNIT - MAZE_OFFSET], axis=-1)
+
+
+def xy_to_ij(xy):
+    """Cell index of positions (jittable): ``xy [..., 2]`` -> int32 ``ij [..., 2]`` (row i from y,
+    column j from x); OGBench's ``xy_to_ij``."""
+    ij = jnp.floor((jnp.asarray(xy)[..., ::-1] + MAZE_OFFSET + 0.5 * MAZE_UNIT) / MAZE_UNIT)
+    return ij.astype(jnp.int32)
 
 
 def tasks(maze: str) -> tuple[Task, ...]:

@@ -124,11 +124,7 @@ def render_maze(grid, path: Optional[str] = None, *, figsize=None, dpi: int = 10
     handles, labels = ax.get_legend_handles_labels()
     if handles:
         ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path)
-        plt.close(fig)
-    return fig
+    return _finish(plt, fig, path)
 
 
 def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, ncols: int = 3, dpi: int = 100):
@@ -150,6 +146,10 @@ def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, n
         draw_maze(ax, grid, **kw)
     for ax in axes.ravel()[n:]:
         ax.axis('off')
+    return _finish(plt, fig, path)
+
+
+def _finish(plt, fig, path):
     fig.tight_layout()
     if path is not None:
         fig.savefig(path)
