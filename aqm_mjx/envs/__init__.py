@@ -27,15 +27,16 @@ def make(name: str, **overrides) -> MazeEnv:
     Args:
         name: ``{ant,point}maze-{arena,medium,large,giant,teleport}``.
         **overrides: physics options (``integrator``, ``solver``, ``iterations``, ``ls_iterations``,
-            ``impl``, ``contact_caps``) and ``max_episode_steps``.
+            ``impl``, ``contact_caps``), ``max_episode_steps`` and ``terminate_at_goal``.
     """
     agent, maze = parse_name(name)
-    unknown = set(overrides) - set(_PHYSICS_FIELDS) - {'max_episode_steps'}
+    episode = ('max_episode_steps', 'terminate_at_goal')
+    unknown = set(overrides) - set(_PHYSICS_FIELDS) - set(episode)
     if unknown:
         raise TypeError(f'unknown option(s) {sorted(unknown)} for make({name!r}); '
-                        f'expected {sorted(_PHYSICS_FIELDS) + ["max_episode_steps"]}')
+                        f'expected {sorted(_PHYSICS_FIELDS) + list(episode)}')
     physics = PhysicsOptions(**{k: v for k, v in overrides.items() if k in _PHYSICS_FIELDS})
-    return MazeEnv(agent, maze, physics, max_episode_steps=overrides.get('max_episode_steps', 1000))
+    return MazeEnv(agent, maze, physics, **{k: v for k, v in overrides.items() if k in episode})
 
 
 __all__ = ['make', 'parse_name', 'ENV_NAMES', 'MazeEnv', 'PhysicsOptions', 'State', 'N_PROXIES', 'mazes']

@@ -187,7 +187,7 @@ class MazeEnv:
     """
 
     def __init__(self, agent: str, maze: str, physics: PhysicsOptions = PhysicsOptions(),
-                 max_episode_steps: int = 1000):
+                 max_episode_steps: int = 1000, terminate_at_goal: bool = True):
         if agent not in ('ant', 'point'):
             raise ValueError(f"unknown agent {agent!r}; expected 'ant' or 'point'")
         if int(max_episode_steps) < 1:
@@ -197,6 +197,7 @@ class MazeEnv:
         self.name = f'{agent}maze-{maze}'
         self.physics = physics
         self.max_episode_steps = int(max_episode_steps)
+        self.terminate_at_goal = bool(terminate_at_goal)  # False: OGBench's data-collection setting
         self.frame_skip = 5
         self.goal_tol = 1.0 if agent == 'point' else 0.5
         self.reset_noise = 0.1
@@ -353,7 +354,8 @@ class MazeEnv:
         """Advance one control step with ``action [action_size]`` (clipped to [-1, 1]).
 
         Success is checked after the step, then (teleport maze) portals fire; as in OGBench the
-        returned observation is the one before a teleport. A done state is returned unchanged.
+        returned observation is the one before a teleport. The episode is done at the goal (unless
+        ``terminate_at_goal=False``) or at ``max_episode_steps``; a done state is returned unchanged.
         """
         data = self.physics_step(state.data, action, state.grid)
         obs = self._obs(data)
@@ -366,7 +368,7 @@ class MazeEnv:
             out = self._tp_out[jax.random.randint(k_out, (), 0, self._tp_out.shape[0])]
             data = data.replace(qpos=data.qpos.at[:2].set(jnp.where(near.any(), out, xy).astype(data.qpos.dtype)))
         steps = state.steps + 1
-        done = (success > 0) | (steps >= self.max_episode_steps)
+        done = ((success > 0) & self.terminate_at_goal) | (steps >= self.max_episode_steps)
         new = state.replace(data=data, obs=obs, key=key, steps=steps, success=success, done=done, reward=success)
         return jax.tree.map(lambda old, nw: jnp.where(state.done, old, nw), state, new)
 

@@ -1,0 +1,373 @@
+"""On-device dataset collection in MJX with OGBench's recipe (``navigate``, ``stitch``, ``explore``).
+
+Each episode starts at a uniformly drawn free cell (cell centre + U(-1, 1) m per axis) and runs for
+exactly ``steps`` control steps with the episode never ending at a goal (OGBench's
+``terminate_at_goal=False``):
+
+- ``navigate``: the goal is a random *junction* cell (a free cell that is not a straight corridor
+  cell); each time it is reached a new one is drawn. Action noise 0.2.
+- ``stitch``: the goal is a cell exactly 4 BFS steps from the start (the start cell itself when none
+  exists), kept for the whole 201-state episode. Noise 0.2.
+- ``explore``: a random unit direction redrawn every 10 steps, action noise 1.0.
+
+The expert is fed the unit direction to the next BFS cell (the goal itself inside the goal cell):
+for the ant the scripted trot (:func:`aqm_mjx.expert.gait_action`), for the point agent the direction
+itself, as in OGBench. Actions are ``clip(expert + N(0, noise), -1, 1)``. Recorded per step: the
+observation and ``qpos``/``qvel`` before the step, the action, and ``terminals`` True at the last
+step of each episode: OGBench's file layout, written by :func:`aqm_mjx.dataset.write_ogbench`.
+
+Episode ``e`` uses the key ``fold_in(PRNGKey(seed), e)``, so the data do not depend on how many
+episodes run side by side. ``episodes`` training episodes are followed by ``episodes // 10``
+validation episodes, OGBench's ``-val`` twin.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+from typing import Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from aqm_mjx import dataset as ds_io
+from aqm_mjx import envs, expert
+from aqm_mjx.envs import mazes
+
+STYLES = ('navigate', 'stitch', 'explore')
+STITCH_CELLS = 4  # BFS steps from the start cell to a stitch goal
+EXPLORE_EVERY = 10  # control steps between explore direction draws
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    """OGBench's numbers for one dataset: training episodes, states per episode, action noise."""
+
+    episodes: int
+    steps: int
+    noise: float
+
+
+def recipe(maze: str, style: str) -> Recipe:
+    """OGBench's recipe (``shared/reference/ogbench-antmaze.md``) for ``maze`` and ``style``."""
+    check_style(style)
+    mazes.check_maze_name(maze)
+    if style == 'navigate':
+        return Recipe(500, 2001, 0.2) if maze == 'giant' else Recipe(1000, 1001, 0.2)
+    if style == 'stitch':
+        return Recipe(5000, 201, 0.2)
+    return Recipe(10000, 501, 1.0)
+
+
+def check_style(style: str) -> str:
+    if style not in STYLES:
+        raise ValueError(f'unknown collection style {style!r}; expected one of {", ".join(STYLES)}')
+    return style
+
+
+@dataclasses.dataclass(frozen=True)
+class CollectConfig:
+    """What to collect. ``None`` fields take OGBench's value from :func:`recipe`.
+
+    Attributes:
+        env: environment name, e.g. ``antmaze-medium``.
+        style: ``navigate``, ``stitch`` or ``explore``.
+        episodes: training episodes (validation adds ``episodes // 10``).
+        steps: states per episode (OGBench: 1001 navigate, 201 stitch, 501 explore).
+        noise: standard deviation of the Gaussian action noise.
+        batch: episodes simulated side by side in one jitted call.
+        seed: base seed; episode ``e`` uses ``fold_in(PRNGKey(seed), e)``.
+    """
+
+    env: str = 'antmaze-medium'
+    style: str = 'navigate'
+    episodes: Optional[int] = None
+    steps: Optional[int] = None
+    noise: Optional[float] = None
+    batch: int = 64
+    seed: int = 0
+
+    def resolved(self) -> 'CollectConfig':
+        """The config with OGBench's defaults filled in and every field checked."""
+        _, maze = envs.parse_name(self.env)
+        r = recipe(maze, self.style)
+        c = dataclasses.replace(self, episodes=r.episodes if self.episodes is None else int(self.episodes),
+                                steps=r.steps if self.steps is None else int(self.steps),
+                                noise=r.noise if self.noise is None else float(self.noise))
+        if c.episodes < 1:
+            raise ValueError(f'episodes must be >= 1; got {c.episodes}')
+        if c.steps < 2:
+            raise ValueError(f'steps (states per episode) must be >= 2; got {c.steps}')
+        if not (math.isfinite(c.noise) and c.noise >= 0):
+            raise ValueError(f'noise must be a finite number >= 0; got {c.noise}')
+        if int(c.batch) < 1:
+            raise ValueError(f'batch must be >= 1; got {c.batch}')
+        return c
+
+    @property
+    def val_episodes(self) -> int:
+        return int(self.episodes) // 10
+
+
+# ------------------------------------------------------------------------------------------- cells
+def free_cells(grid) -> np.ndarray:
+    """int32 ``[F, 2]`` (i, j) of the free cells, row-major."""
+    return np.argwhere(np.asarray(grid) == 0).astype(np.int32)
+
+
+def junction_cells(grid) -> np.ndarray:
+    """int32 ``[V, 2]`` free cells that are not straight corridor cells (OGBench's navigate goals).
+
+    A corridor cell has free cells on two opposite sides and walls on the other two.
+    """
+    g = np.asarray(grid)
+    h, w = g.shape
+
+    def wall(i, j):
+        return not (0 <= i < h and 0 <= j < w) or g[i, j] != 0
+
+    keep = []
+    for i, j in free_cells(g):
+        vertical = not wall(i - 1, j) and not wall(i + 1, j) and wall(i, j - 1) and wall(i, j + 1)
+        horizontal = not wall(i, j - 1) and not wall(i, j + 1) and wall(i - 1, j) and wall(i + 1, j)
+        if not (vertical or horizontal):
+            keep.append((i, j))
+    return np.asarray(keep, np.int32).reshape(-1, 2)
+
+
+def cells_at_bfs_distance(grid, k: int = STITCH_CELLS) -> tuple[np.ndarray, np.ndarray]:
+    """Cells exactly ``k`` BFS steps from each free cell.
+
+    Returns:
+        ``cells`` int32 ``[F, C, 2]`` (padded with the start cell itself) and ``count`` int32 ``[F]``
+        for the free cells in :func:`free_cells` order. Where no cell is ``k`` steps away the count is
+        1 and the only entry is the start cell (OGBench's fallback).
+    """
+    g = np.asarray(grid)
+    h, w = g.shape
+    free = free_cells(g)
+    found = []
+    for i0, j0 in free:
+        dist = -np.ones((h, w), np.int64)
+        dist[i0, j0] = 0
+        frontier, ring = [(i0, j0)], []
+        for _ in range(k):
+            nxt = []
+            for i, j in frontier:
+                for di, dj in ((-1, 0), (0, -1), (1, 0), (0, 1)):
+                    ni, nj = i + di, j + dj
+                    if 0 <= ni < h and 0 <= nj < w and g[ni, nj] == 0 and dist[ni, nj] < 0:
+                        dist[ni, nj] = dist[i, j] + 1
+                        nxt.append((ni, nj))
+            frontier = nxt
+        ring = frontier or [(i0, j0)]
+        found.append(ring)
+    width = max(len(r) for r in found)
+    cells = np.zeros((len(free), width, 2), np.int32)
+    for n, ring in enumerate(found):
+        cells[n] = np.asarray(ring + [ring[0]] * (width - len(ring)), np.int32)
+    return cells, np.asarray([len(r) for r in found], np.int32)
+
+
+# ----------------------------------------------------------------------------------------- episode
+def _noisy_xy(key, ij):
+    noise = mazes.START_GOAL_NOISE * mazes.MAZE_UNIT / 4
+    xy = ij[::-1].astype(jnp.float32) * mazes.MAZE_UNIT - mazes.MAZE_OFFSET
+    return xy + jax.random.uniform(key, (2,), minval=-noise, maxval=noise)
+
+
+def episode_fn(env, style: str, steps: int, noise: float) -> Callable[[jax.Array], dict]:
+    """A pure, jittable, vmappable function ``key -> one episode`` of OGBench-style data.
+
+    ``env`` must be built with ``terminate_at_goal=False`` and ``max_episode_steps >= steps``.
+
+    Returns:
+        ``f(key) -> dict`` with ``observations [steps, obs_size]``, ``actions [steps, action_size]``,
+        ``qpos [steps, nq]``, ``qvel [steps, nv]``, ``goals_reached []`` int32 (navigate: goals
+        reached; stitch: 1 if the goal was reached; explore: 0) and ``upright [steps]`` bool (the
+        torso's up axis above the horizon; always True for the point).
+    """
+    check_style(style)
+    if env.terminate_at_goal:
+        raise ValueError('collection needs an environment built with terminate_at_goal=False')
+    if env.max_episode_steps < steps:
+        raise ValueError(f'the environment ends episodes after {env.max_episode_steps} steps; collection needs '
+                         f'max_episode_steps >= steps ({steps})')
+    grid = env.layout
+    h, w = grid.shape
+    free = jnp.asarray(free_cells(grid))
+    junctions = jnp.asarray(junction_cells(grid))
+    ring_cells, ring_count = (jnp.asarray(a) for a in cells_at_bfs_distance(grid))
+    table = jnp.asarray(expert.bfs_next_cell(grid))
+    ant = env.agent == 'ant'
+
+    def draw_junction(key):
+        return junctions[jax.random.randint(key, (), 0, junctions.shape[0])]
+
+    def run(key):
+        k_init, k_goal, k_gxy, k_ixy, k_reset, k_phase, k_loop = jax.random.split(key, 7)
+        f = jax.random.randint(k_init, (), 0, free.shape[0])
+        init_ij = free[f]
+        if style == 'stitch':
+            goal_ij = ring_cells[f, jax.random.randint(k_goal, (), 0, ring_count[f])]
+        else:
+            goal_ij = draw_junction(k_goal)
+        state = env.reset_to(k_reset, _noisy_xy(k_ixy, init_ij), _noisy_xy(k_gxy, goal_ij))
+        phase = jax.random.uniform(k_phase, (), maxval=2 * jnp.pi)
+
+        def body(carry, t):
+            state, key, direction, reached = carry
+            key, k_dir, k_noise, k_new, k_newxy = jax.random.split(key, 5)
+            xy = state.data.qpos[:2]
+            if style == 'explore':
+                fresh = jax.random.normal(k_dir, (2,))
+                fresh = fresh / (jnp.linalg.norm(fresh) + 1e-6)
+                direction = jnp.where(t % EXPLORE_EVERY == 0, fresh, direction)
+            else:
+                d = expert.waypoint_command(xy, state.goal_xy, table, (h, w))
+                direction = d / (jnp.linalg.norm(d) + 1e-6)
+            if ant:
+                a = expert.gait_action(state.data.qpos, state.data.qvel, direction, t, phase)
+            else:
+                a = direction
+            a = jnp.clip(a + noise * jax.random.normal(k_noise, a.shape), -1.0, 1.0)
+            record = dict(observations=state.obs, actions=a, qpos=state.data.qpos.astype(jnp.float32),
+                          qvel=state.data.qvel.astype(jnp.float32))
+            state = env.step(state, a)
+            hit = state.success > 0
+            if style == 'navigate':
+                reached = reached + hit.astype(jnp.int32)
+                state = state.replace(goal_xy=jnp.where(hit, _noisy_xy(k_newxy, draw_junction(k_new)), state.goal_xy))
+            elif style == 'stitch':
+                reached = jnp.maximum(reached, hit.astype(jnp.int32))
+            q = state.data.qpos
+            record['upright'] = (1 - 2 * (q[4] ** 2 + q[5] ** 2)) > 0 if ant else jnp.ones((), bool)
+            return (state, key, direction, reached), record
+
+        init = (state, k_loop, jnp.array([1.0, 0.0]), jnp.zeros((), jnp.int32))
+        (_, _, _, reached), out = jax.lax.scan(body, init, jnp.arange(steps))
+        out['goals_reached'] = reached
+        return out
+
+    return run
+
+
+# ---------------------------------------------------------------------------------------- collect
+@dataclasses.dataclass
+class CollectResult:
+    """Arrays in OGBench's layout for the training and validation splits, plus how it went."""
+
+    train: dict
+    val: dict
+    config: CollectConfig
+    stats: dict
+
+
+def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool = True,
+            on_chunk: Optional[Callable[[int, int], None]] = None) -> CollectResult:
+    """Collect ``cfg.episodes`` training and ``cfg.episodes // 10`` validation episodes.
+
+    Episodes run ``cfg.batch`` at a time in one jitted, vmapped call (time under ``lax.scan``);
+    the host copies each chunk once into preallocated arrays.
+
+    Args:
+        cfg: what to collect (see :class:`CollectConfig`).
+        physics: MJX physics overrides for :func:`aqm_mjx.envs.make` (e.g. ``{'iterations': 4}``).
+        progress: show a progress bar over chunks.
+    Returns:
+        :class:`CollectResult` with ``train``/``val`` dicts of ``observations``, ``actions``,
+        ``terminals``, ``qpos``, ``qvel``, and ``stats`` (timings, goals reached, flips).
+    """
+    cfg = cfg.resolved()
+    env = envs.make(cfg.env, max_episode_steps=cfg.steps, terminate_at_goal=False, **(physics or {}))
+    total = cfg.episodes + cfg.val_episodes
+    batch = min(int(cfg.batch), total)
+    run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise)))
+    base = jax.random.PRNGKey(cfg.seed)
+    n, t = total * cfg.steps, cfg.steps
+    nq, nv = env.mj_model.nq, env.mj_model.nv
+    buf = dict(observations=np.empty((n, env.obs_size), np.float32), actions=np.empty((n, env.action_size), np.float32),
+               qpos=np.empty((n, nq), np.float32), qvel=np.empty((n, nv), np.float32))
+    reached = np.empty(total, np.int64)
+    flipped = np.empty(total, bool)
+    chunks = range(0, total, batch)
+    bar = _progress(len(chunks), f'collect {cfg.env} {cfg.style}', progress)
+    t0 = time.perf_counter()
+    compile_s = None
+    for c, first in enumerate(chunks):
+        ids = jnp.arange(first, first + batch)
+        keys = jax.vmap(lambda e: jax.random.fold_in(base, e))(ids)
+        ts = time.perf_counter()
+        out = jax.device_get(run(keys))
+        if compile_s is None:
+            compile_s = time.perf_counter() - ts  # first call: compile + one chunk
+            first_chunk_s = compile_s
+        m = min(batch, total - first)
+        rows = slice(first * t, (first + m) * t)
+        for k in buf:
+            buf[k][rows] = out[k][:m].reshape(m * t, -1)
+        reached[first:first + m] = out['goals_reached'][:m]
+        flipped[first:first + m] = ~out['upright'][:m, -1]
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(transitions=(first + m) * t)
+        if on_chunk is not None:
+            on_chunk(c, len(chunks))
+    if bar is not None:
+        bar.close()
+    wall = time.perf_counter() - t0
+    terminals = np.zeros(n, bool)
+    terminals[t - 1::t] = True
+    buf['terminals'] = terminals
+    cut = cfg.episodes * t
+    train = {k: v[:cut] for k, v in buf.items()}
+    val = {k: v[cut:] for k, v in buf.items()}
+    run_s = wall - first_chunk_s
+    steady = (total - min(batch, total)) * t
+    stats = dict(env=cfg.env, style=cfg.style, episodes=cfg.episodes, val_episodes=cfg.val_episodes,
+                 steps=cfg.steps, noise=cfg.noise, batch=batch, seed=cfg.seed, transitions=int(n),
+                 wall_s=round(wall, 2), first_chunk_s=round(first_chunk_s, 2),
+                 steady_transitions_per_s=round(steady / run_s, 1) if steady and run_s > 0 else None,
+                 goals_reached_mean=float(reached.mean()), flipped_episodes=int(flipped.sum()),
+                 backend=jax.default_backend())
+    return CollectResult(train=train, val=val, config=cfg, stats=stats)
+
+
+def write(result: CollectResult, path: str, overwrite: bool = False) -> tuple[str, str]:
+    """Write ``path`` and its ``-val`` twin (atomically; existing files are kept unless ``overwrite``)."""
+    if not path.endswith('.npz'):
+        raise ValueError(f'output file must end in .npz (OGBench layout); got {path!r}')
+    vpath = ds_io.val_path(path)
+    if not overwrite:
+        for p in (path, vpath):
+            if os.path.exists(p):
+                raise FileExistsError(f'{p} exists; pass overwrite=True (--overwrite) to replace it')
+    ds_io.write_ogbench(path, result.train)
+    if result.config.val_episodes:
+        ds_io.write_ogbench(vpath, result.val)
+    return path, vpath
+
+
+def plot(result: CollectResult, path: str, n: int = 12) -> None:
+    """Trajectories of the first ``n`` training episodes over the maze, as a PNG."""
+    from aqm_mjx.envs import render  # pylint: disable=import-outside-toplevel
+
+    _, maze = envs.parse_name(result.config.env)
+    t = result.config.steps
+    xy = result.train['qpos'][:, :2]
+    m = min(n, result.config.episodes)
+    trajs = [xy[e * t:(e + 1) * t] for e in range(m)]
+    c = result.config
+    render.render_maze(mazes.layout(maze), path, trajectories=trajs, start_xy=np.stack([tr[0] for tr in trajs]),
+                       title=f'{c.env} {c.style}: {m} of {c.episodes} episodes x {t} states')
+
+
+def _progress(total, desc, enabled):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+
+    return tqdm(total=total, desc=desc, unit='chunk')

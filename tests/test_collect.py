@@ -1,0 +1,154 @@
+"""On-device collection: OGBench's recipe (cells, goals, directions), file format, CLI."""
+
+import os
+
+import jax
+import numpy as np
+import pytest
+from ogbench.utils import load_dataset
+from scipy.sparse.csgraph import shortest_path
+
+from aqm_mjx import cli, collect, envs
+from aqm_mjx import dataset as dsm
+from aqm_mjx.envs import mazes
+
+
+def _grid_distances(grid):
+    g = np.asarray(grid)
+    h, w = g.shape
+    adj = np.zeros((h * w, h * w))
+    for i in range(h):
+        for j in range(w):
+            if g[i, j]:
+                continue
+            for di, dj in ((1, 0), (0, 1)):
+                ni, nj = i + di, j + dj
+                if ni < h and nj < w and not g[ni, nj]:
+                    adj[i * w + j, ni * w + nj] = adj[ni * w + nj, i * w + j] = 1
+    return shortest_path(adj, unweighted=True)
+
+
+def test_junction_cells_on_a_hand_drawn_maze():
+    grid = np.array([[1, 1, 1, 1, 1],
+                     [1, 0, 0, 0, 1],
+                     [1, 0, 1, 1, 1],
+                     [1, 0, 1, 1, 1],
+                     [1, 1, 1, 1, 1]])
+    # (1,2) is a horizontal corridor cell and (2,1) a vertical one; (1,1) is a corner and (1,3),
+    # (3,1) dead ends: all three are junction cells in OGBench's sense.
+    got = {tuple(c) for c in collect.junction_cells(grid)}
+    assert got == {(1, 1), (1, 3), (3, 1)}
+    assert len(collect.free_cells(grid)) == 5
+
+
+@pytest.mark.parametrize('maze', ['medium', 'large', 'teleport'])
+def test_stitch_goal_cells_are_exactly_four_bfs_steps_away(maze):
+    grid = mazes.layout(maze)
+    free = collect.free_cells(grid)
+    cells, count = collect.cells_at_bfs_distance(grid, 4)
+    dist = _grid_distances(grid)
+    w = grid.shape[1]
+    for f, (i, j) in enumerate(free):
+        want = {tuple(divmod(int(c), w)) for c in np.flatnonzero(dist[i * w + j] == 4)}
+        got = {tuple(c) for c in cells[f, :count[f]]}
+        assert got == (want or {(i, j)}), (maze, i, j)
+        assert (cells[f, count[f]:] == cells[f, 0]).all()  # padding repeats a valid entry
+
+
+def test_recipe_defaults_and_errors():
+    assert collect.recipe('medium', 'navigate') == collect.Recipe(1000, 1001, 0.2)
+    assert collect.recipe('giant', 'navigate') == collect.Recipe(500, 2001, 0.2)
+    assert collect.recipe('large', 'stitch') == collect.Recipe(5000, 201, 0.2)
+    assert collect.recipe('medium', 'explore') == collect.Recipe(10000, 501, 1.0)
+    with pytest.raises(ValueError, match='unknown collection style'):
+        collect.CollectConfig(style='wander').resolved()
+    with pytest.raises(ValueError, match='unknown environment'):
+        collect.CollectConfig(env='antmaze-huge').resolved()
+    with pytest.raises(ValueError, match='episodes must be >= 1'):
+        collect.CollectConfig(episodes=0).resolved()
+    with pytest.raises(ValueError, match='noise'):
+        collect.CollectConfig(noise=float('nan')).resolved()
+    env = envs.make('pointmaze-medium')
+    with pytest.raises(ValueError, match='terminate_at_goal=False'):
+        collect.episode_fn(env, 'navigate', 10, 0.2)
+
+
+def test_point_collection_file_format_and_ogbench_loader(tmp_path):
+    cfg = collect.CollectConfig(env='pointmaze-medium', style='navigate', episodes=10, steps=120, batch=4, seed=3)
+    res = collect.collect(cfg, progress=False)
+    tr, va = res.train, res.val
+    assert tr['observations'].shape == (10 * 120, 2) and va['observations'].shape == (1 * 120, 2)
+    assert tr['actions'].shape == (1200, 2) and tr['qpos'].shape == (1200, 2) and tr['qvel'].shape == (1200, 2)
+    np.testing.assert_array_equal(np.flatnonzero(tr['terminals']), np.arange(119, 1200, 120))
+    np.testing.assert_array_equal(tr['observations'], tr['qpos'])  # the point's observation is its qpos
+    assert np.abs(tr['actions']).max() <= 1.0
+    # consecutive states of an episode differ by 0.2 * action (OGBench's point), away from walls
+    step = (tr['observations'][1:] - tr['observations'][:-1])[~tr['terminals'][:-1]]
+    moved = np.linalg.norm(step - 0.2 * tr['actions'][:-1][~tr['terminals'][:-1]], axis=1)
+    assert np.median(moved) < 1e-4
+    assert res.stats['goals_reached_mean'] > 0.5  # the oracle reaches junction goals within 120 steps
+    path = str(tmp_path / 'pointmaze-medium-navigate-v0.npz')
+    collect.write(res, path)
+    with pytest.raises(FileExistsError, match='exists'):
+        collect.write(res, path)
+    ref = load_dataset(path, add_info=True)  # OGBench's loader, unchanged
+    assert ref['observations'].shape == (10 * 119, 2)
+    back = dsm.read_ogbench(path, obs_size=2, action_size=2)
+    for k in tr:
+        assert back[k].dtype == tr[k].dtype and np.array_equal(back[k], tr[k]), k
+    assert dsm.read_ogbench(dsm.val_path(path))['observations'].shape == (120, 2)
+
+
+@pytest.mark.slow  # two more compilations (about 40 s)
+def test_episodes_do_not_depend_on_the_batch():
+    a = collect.collect(collect.CollectConfig(env='pointmaze-medium', style='stitch', episodes=5, steps=30, batch=2),
+                        progress=False)
+    b = collect.collect(collect.CollectConfig(env='pointmaze-medium', style='stitch', episodes=5, steps=30, batch=6),
+                        progress=False)
+    for k in a.train:
+        np.testing.assert_allclose(a.train[k], b.train[k], atol=1e-5, err_msg=k)
+
+
+def test_explore_directions_hold_for_ten_steps_and_stitch_reaches_its_goal():
+    env = envs.make('pointmaze-large', max_episode_steps=40, terminate_at_goal=False)
+    run = jax.jit(jax.vmap(collect.episode_fn(env, 'explore', 40, 0.0)))
+    out = jax.device_get(run(jax.random.split(jax.random.PRNGKey(0), 3)))
+    act = out['actions']  # noise 0: the point's action is the unit direction itself
+    np.testing.assert_allclose(np.linalg.norm(act, axis=-1), 1.0, atol=1e-4)
+    blocks = act.reshape(3, 4, 10, 2)
+    np.testing.assert_allclose(blocks, np.broadcast_to(blocks[:, :, :1], blocks.shape), atol=1e-6)
+    assert np.abs(blocks[:, 1:, 0] - blocks[:, :-1, 0]).max() > 0.1  # and change between blocks
+    env = envs.make('pointmaze-large', max_episode_steps=201, terminate_at_goal=False)
+    run = jax.jit(jax.vmap(collect.episode_fn(env, 'stitch', 201, 0.2)))
+    out = jax.device_get(run(jax.random.split(jax.random.PRNGKey(1), 16)))
+    assert out['goals_reached'].mean() >= 0.9  # 4 cells = 16 m in 201 steps of <= 0.2 m
+
+
+def test_ant_collection_is_upright_and_moves():
+    env = envs.make('antmaze-medium', max_episode_steps=60, terminate_at_goal=False)
+    run = jax.jit(jax.vmap(collect.episode_fn(env, 'stitch', 60, 0.2)))
+    out = jax.device_get(run(jax.random.split(jax.random.PRNGKey(0), 4)))
+    assert out['observations'].shape == (4, 60, 29) and out['actions'].shape == (4, 60, 8)
+    np.testing.assert_array_equal(out['observations'][..., :15], out['qpos'])
+    np.testing.assert_array_equal(out['observations'][..., 15:], out['qvel'])
+    assert out['upright'].all()
+    travelled = np.linalg.norm(out['qpos'][:, -1, :2] - out['qpos'][:, 0, :2], axis=-1)
+    assert travelled.min() > 1.5  # 6 s of trotting at >= 1 m/s, minus turns
+
+
+def test_cli_collect(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        cli.main(['collect', '--help'])
+    help_text = capsys.readouterr().out
+    for opt in ('--env', '--style', '--episodes', '--steps', '--noise', '--batch', '--seed', '--out', '--overwrite'):
+        assert opt in help_text
+    out = str(tmp_path / 'pm.npz')
+    assert cli.main(['collect', '--env', 'pointmaze-medium', '--style', 'explore', '--episodes', '10', '--steps', '30',
+                     '--out', out]) == 0
+    assert os.path.exists(out) and os.path.exists(str(tmp_path / 'pm-val.npz')) and os.path.exists(str(tmp_path / 'pm.png'))
+    assert load_dataset(out)['observations'].shape == (10 * 29, 2)
+    before = open(out, 'rb').read()
+    assert cli.main(['collect', '--env', 'pointmaze-medium', '--episodes', '2', '--steps', '5', '--out', out]) == 2
+    assert 'exists' in capsys.readouterr().err
+    assert open(out, 'rb').read() == before  # nothing already written is lost
+    assert cli.main(['collect', '--env', 'antmaze-medium', '--out', str(tmp_path / 'x.txt')]) == 2
