@@ -148,6 +148,71 @@ def cmd_run(a):
     return 0
 
 
+def cmd_collect(a):
+    """Collect an OGBench-format dataset in MJX with the scripted expert."""
+    _enable_compile_cache()
+    from aqm_mjx import collect  # pylint: disable=import-outside-toplevel
+
+    if not a.out.endswith('.npz'):
+        raise ValueError(f'--out must name an .npz file; got {a.out!r}')
+    from aqm_mjx.dataset import val_path  # pylint: disable=import-outside-toplevel
+
+    if not a.overwrite:
+        for p in (a.out, val_path(a.out)):
+            if os.path.exists(p):
+                raise ValueError(f'{p} exists; pass --overwrite to replace it')
+    cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
+                                batch=a.batch, seed=a.seed).resolved()
+    import jax  # pylint: disable=import-outside-toplevel
+
+    print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
+          f'{cfg.env}, noise {cfg.noise}, {cfg.batch} at a time on {jax.devices()[0]}')
+    physics = {k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations)) if v is not None}
+    res = collect.collect(cfg, physics=physics)
+    train, val = collect.write(res, a.out, overwrite=a.overwrite)
+    png = a.out[:-4] + '.png'
+    collect.plot(res, png)
+    res.stats.update(train=train, val=val if cfg.val_episodes else None, picture=png)
+    with open(a.out[:-4] + '.json', 'w') as f:
+        json.dump(res.stats, f, indent=1)
+    print(json.dumps(res.stats, indent=1))
+    return 0
+
+
+def cmd_train(a):
+    """Train the quasimetric and the policies on an OGBench-format dataset."""
+    _enable_compile_cache()
+    from aqm_mjx import dataset, envs, train  # pylint: disable=import-outside-toplevel
+
+    style = None
+    env_name = a.env
+    if env_name is None and not a.resume:
+        env_name, style = train.infer_env(a.dataset)
+    elif a.dataset:
+        try:
+            style = train.infer_env(a.dataset)[1]
+        except ValueError:
+            style = None
+    cfg = None
+    obs_size = action_size = None
+    if not a.resume:
+        env = envs.make(env_name)
+        obs_size, action_size = env.obs_size, env.action_size
+        over = {'env': env_name, 'seed': a.seed}
+        if style == 'explore':
+            over['policy_goals'] = 'random'  # AQM: uniform random goals on explore datasets
+        cfg = train.TrainConfig.preset(a.preset, **over).with_overrides(a.set or [])
+    data = dataset.read_ogbench(a.dataset, obs_size=obs_size, action_size=action_size, add_info=False)
+    print(f'dataset {a.dataset}: {len(data["terminals"])} states, {int(data["terminals"].sum())} trajectories')
+    if cfg is not None:
+        print(f'preset {cfg.preset}: {cfg.steps} updates of batch {cfg.batch_size}, quasimetric {cfg.q_hidden} -> '
+              f'{cfg.n_components}x{cfg.component_size}, policies {cfg.pi_hidden}, objective {cfg.objective}, '
+              f'push offset {cfg.offset}')
+    train.train(cfg, data, a.out, resume=a.resume, steps=a.steps, dataset_path=os.path.abspath(a.dataset))
+    print(f'wrote {a.out} (config.json, metrics.jsonl, checkpoints/)')
+    return 0
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog='aqm-mjx', description='Adaptive Quasimetric Mapping on MuJoCo MJX.')
     sub = p.add_subparsers(dest='cmd', required=True)
@@ -166,10 +231,53 @@ def main(argv=None):
     d.add_argument('--deltas', type=float, nargs='*', default=None,
                    help='draw IWE keypoint maps for these delta values (m), with the exact maze distance')
     d.set_defaults(fn=cmd_render)
+    c = sub.add_parser(
+        'collect', help='collect an OGBench-format dataset in MJX with the scripted expert',
+        description='Collect a dataset with OGBench\'s recipe: the scripted ant trot (or the point agent\'s '
+                    'direct move) steered along BFS waypoints, run in MJX, written as OGBench .npz plus the '
+                    '-val twin (a tenth as many episodes), a PNG of some trajectories and a JSON summary.')
+    c.add_argument('--env', default='antmaze-medium', help='environment, e.g. antmaze-medium, antmaze-large, pointmaze-medium')
+    c.add_argument('--style', default='navigate', choices=['navigate', 'stitch', 'explore'],
+                   help='navigate: a new junction-cell goal each time one is reached (noise 0.2); stitch: a goal '
+                        'exactly 4 BFS cells away, 201-state episodes; explore: a random direction redrawn '
+                        'every 10 steps (noise 1.0)')
+    c.add_argument('--episodes', type=int, default=None,
+                   help="training episodes (default OGBench's: 1000 navigate, 500 giant navigate, 5000 stitch, "
+                        '10000 explore); validation adds a tenth')
+    c.add_argument('--steps', type=int, default=None,
+                   help="states per episode (default OGBench's: 1001 navigate, 2001 giant, 201 stitch, 501 explore)")
+    c.add_argument('--noise', type=float, default=None, help='Gaussian action noise (default 0.2, explore 1.0)')
+    c.add_argument('--batch', type=int, default=64,
+                   help='episodes simulated side by side (CPU: 64 to 256; GPU: thousands)')
+    c.add_argument('--seed', type=int, default=0, help='random seed (episode e uses fold_in(seed, e))')
+    c.add_argument('--iterations', type=int, default=None,
+                   help="MJX solver iterations (default MuJoCo's: 100); fewer trade fidelity for speed")
+    c.add_argument('--ls-iterations', type=int, default=None, help="MJX line-search iterations (default MuJoCo's: 50)")
+    c.add_argument('--out', required=True, help='output .npz (the -val twin, .png and .json go beside it)')
+    c.add_argument('--overwrite', action='store_true', help='replace existing output files')
+    c.set_defaults(fn=cmd_collect)
+    t = sub.add_parser('train', help='train the quasimetric and the policies on a dataset (Orbax checkpoints)',
+                       description='Train AQM\'s quasimetric (IQE + QRL) and policies (Q-AWR target, Q-SAW main) '
+                                   'on an OGBench-format .npz. Writes OUT/config.json, OUT/metrics.jsonl (JSON lines) '
+                                   'and Orbax checkpoints in OUT/checkpoints.')
+    t.add_argument('--dataset', required=True, help='OGBench .npz (e.g. antmaze-large-navigate-v0.npz)')
+    t.add_argument('--env', default=None,
+                   help='environment; inferred from a file name such as antmaze-large-navigate-v0.npz when omitted')
+    t.add_argument('--preset', default='cpu', choices=['cpu', 'paper', 'tiny'],
+                   help='cpu: minutes on a 2-core CPU; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
+                        'tiny: smoke tests')
+    t.add_argument('--set', action='append', metavar='KEY=VALUE',
+                   help='override a config field, e.g. --set batch_size=512 --set q_hidden=512,512 (repeatable)')
+    t.add_argument('--steps', type=int, default=None, help='total updates (overrides the preset; extends a resumed run)')
+    t.add_argument('--seed', type=int, default=0)
+    t.add_argument('--out', required=True, help='run folder')
+    t.add_argument('--resume', action='store_true',
+                   help='continue the run in --out from its newest readable checkpoint (its saved config is used)')
+    t.set_defaults(fn=cmd_train)
     a = p.parse_args(argv)
     try:
         return a.fn(a)
-    except (ValueError, TypeError) as err:
+    except (ValueError, TypeError, FileExistsError, RuntimeError) as err:
         print(f'aqm-mjx: error: {err}', file=sys.stderr)
         return 2
 
