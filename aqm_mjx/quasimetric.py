@@ -23,6 +23,8 @@ def interval_union_length(x: jax.Array, y: jax.Array) -> jax.Array:
     Endpoints are sorted; coverage between consecutive endpoints is the running count of interval
     starts minus ends, and a gap counts when that coverage is positive.
     """
+    if x.shape[-1] == 1:  # one interval: its length (the paper's 512 x 1 latent takes this path)
+        return jax.nn.relu(y[..., 0] - x[..., 0])
     valid = (x < y).astype(x.dtype)
     ends = jnp.concatenate([x, jnp.maximum(x, y)], axis=-1)  # [..., 2M]
     inc = jnp.concatenate([valid, -valid], axis=-1)  # +1 at a start, -1 at an end (0 for empty intervals)
@@ -34,8 +36,9 @@ def interval_union_length(x: jax.Array, y: jax.Array) -> jax.Array:
 
 def iqe_components(zx: jax.Array, zy: jax.Array, n_components: int) -> jax.Array:
     """Per-component IQE distances: latents ``[..., N*M]`` -> ``[..., N]``."""
-    shape = zx.shape[:-1] + (n_components, zx.shape[-1] // n_components)
-    return interval_union_length(zx.reshape(shape), jnp.broadcast_to(zy, zx.shape).reshape(shape))
+    full = jnp.broadcast_shapes(zx.shape, zy.shape)  # e.g. [N, 1, L] against [1, K, L] for all pairs
+    shape = full[:-1] + (n_components, full[-1] // n_components)
+    return interval_union_length(jnp.broadcast_to(zx, full).reshape(shape), jnp.broadcast_to(zy, full).reshape(shape))
 
 
 def maxmean(components: jax.Array, alpha: jax.Array) -> jax.Array:

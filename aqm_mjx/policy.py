@@ -1,0 +1,93 @@
+"""Goal-conditioned Gaussian policies and the policy objectives of AQM (paper section 4.4, Table 4).
+
+Policies are MLPs (GELU, no LayerNorm; paper Appendix 10.1) from ``[state, goal input]`` to the mean
+of a diagonal Gaussian. As in OGBench's actors the standard deviation is a constant 1 by default
+(``const_std``), in which case the KL between two policies is half the squared distance of their
+means; a learned state-independent log-std is the option.
+
+The goal input is the raw goal observation, or (Appendix 10.3) the unit direction from the agent's
+x-y to the goal's x-y.
+
+Objectives, all with the quasimetric ``d`` held fixed (stop-gradient) and weights
+``min(exp(temperature * advantage), clip)``:
+
+- Q-AWR (eq. 5): ``-E[w * log pi(a | s, w)]``, advantage ``d(s, w) - d(s', w)``;
+- Q-SAW (eq. 6): ``E[w * KL(pi(.|s, g) || pi_sub(.|s, w))]``, advantage ``d(s, g) - d(w, g)``;
+- behaviour cloning: ``-E[log pi(a | s, g)]``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+CONDITIONING = ('goal', 'direction')
+
+
+def goal_input(obs: jax.Array, goal: jax.Array, conditioning: str) -> jax.Array:
+    """What the policy sees of the goal: ``obs, goal [..., D]`` -> ``[..., D]`` or ``[..., 2]``."""
+    if conditioning == 'goal':
+        return goal
+    if conditioning == 'direction':
+        delta = goal[..., :2] - obs[..., :2]
+        return delta / (jnp.linalg.norm(delta, axis=-1, keepdims=True) + 1e-6)
+    raise ValueError(f'unknown goal conditioning {conditioning!r}; expected one of {CONDITIONING}')
+
+
+class GaussianPolicy(nn.Module):
+    """``(obs [..., D], goal_in [..., G]) -> (mean [..., A], log_std [..., A])``.
+
+    Attributes:
+        action_size: A.
+        hidden: MLP widths (paper: 3 x 512).
+        const_std: a fixed unit standard deviation (OGBench's actors) instead of a learned log-std.
+    """
+
+    action_size: int
+    hidden: Sequence[int] = (512, 512, 512)
+    const_std: bool = True
+
+    @nn.compact
+    def __call__(self, obs, goal_in):
+        x = jnp.concatenate([obs, goal_in], axis=-1)
+        for h in self.hidden:
+            x = nn.gelu(nn.Dense(h)(x))
+        mean = nn.Dense(self.action_size)(x)
+        if self.const_std:
+            log_std = jnp.zeros_like(mean)
+        else:
+            log_std = jnp.broadcast_to(self.param('log_std', nn.initializers.zeros, (self.action_size,)), mean.shape)
+        return mean, log_std
+
+
+def log_prob(mean: jax.Array, log_std: jax.Array, action: jax.Array) -> jax.Array:
+    """Diagonal Gaussian log-density: ``[..., A]`` -> ``[...]``."""
+    z = (action - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * z ** 2 - log_std - 0.5 * math.log(2 * math.pi), axis=-1)
+
+
+def kl(mean_p, log_std_p, mean_q, log_std_q) -> jax.Array:
+    """``KL(p || q)`` of diagonal Gaussians: ``[..., A]`` -> ``[...]``."""
+    var_p, var_q = jnp.exp(2 * log_std_p), jnp.exp(2 * log_std_q)
+    return jnp.sum(log_std_q - log_std_p + (var_p + (mean_p - mean_q) ** 2) / (2 * var_q) - 0.5, axis=-1)
+
+
+def advantage_weight(adv: jax.Array, temperature: float, clip: float) -> jax.Array:
+    """``min(exp(temperature * adv), clip)``, computed without overflow."""
+    return jnp.exp(jnp.minimum(temperature * adv, math.log(clip)))
+
+
+def awr_loss(logp: jax.Array, adv: jax.Array, temperature: float, clip: float):
+    """Q-AWR (eq. 5): ``-mean(w * logp)``; ``logp, adv [B]``. Returns ``(loss, weights [B])``."""
+    w = advantage_weight(jax.lax.stop_gradient(adv), temperature, clip)
+    return -jnp.mean(w * logp), w
+
+
+def saw_loss(kl_main_target: jax.Array, adv: jax.Array, temperature: float, clip: float):
+    """Q-SAW (eq. 6): ``mean(w * KL)``; ``kl_main_target, adv [B]``. Returns ``(loss, weights [B])``."""
+    w = advantage_weight(jax.lax.stop_gradient(adv), temperature, clip)
+    return jnp.mean(w * kl_main_target), w

@@ -1,0 +1,185 @@
+"""Policies' objectives by hand, the training config, calibration on a directed grid, Orbax resume."""
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import spearmanr
+
+from aqm_mjx import cli, policy, synthetic, train
+from aqm_mjx import dataset as dsm
+
+
+# ----------------------------------------------------------------------------------- objectives
+def test_log_prob_and_kl_by_hand():
+    mean, log_std, a = jnp.array([0.5, -1.0]), jnp.array([0.0, math.log(2.0)]), jnp.array([1.0, 1.0])
+    want = (-0.5 * 0.25 - 0.5 * math.log(2 * math.pi)) + (-0.5 * 1.0 - math.log(2.0) - 0.5 * math.log(2 * math.pi))
+    assert float(policy.log_prob(mean, log_std, a)) == pytest.approx(want, rel=1e-6)
+    # unit std: KL = |mu_p - mu_q|^2 / 2
+    assert float(policy.kl(jnp.array([1.0, 2.0]), jnp.zeros(2), jnp.array([0.0, 0.0]), jnp.zeros(2))) == pytest.approx(2.5)
+    # KL(N(0, 1) || N(0, 2^2)) = log 2 + 1/8 - 1/2
+    assert float(policy.kl(jnp.zeros(1), jnp.zeros(1), jnp.zeros(1), jnp.log(jnp.full(1, 2.0)))) == pytest.approx(
+        math.log(2) + 0.125 - 0.5, rel=1e-6)
+
+
+def test_advantage_weighted_losses_by_hand():
+    logp = jnp.array([-1.0, -2.0, -3.0])
+    adv = jnp.array([0.0, 1.0, 10.0])  # weights exp(3 * adv) = 1, e^3, clipped at 100
+    loss, w = policy.awr_loss(logp, adv, 3.0, 100.0)
+    np.testing.assert_allclose(w, [1.0, math.exp(3.0), 100.0], rtol=1e-6)
+    assert float(loss) == pytest.approx(-(-1.0 - 2 * math.exp(3.0) - 300.0) / 3, rel=1e-6)
+    kl = jnp.array([0.5, 0.0, 2.0])
+    loss, w = policy.saw_loss(kl, jnp.array([-1.0, 5.0, 0.5]), 3.0, 100.0)
+    assert float(loss) == pytest.approx((0.5 * math.exp(-3.0) + 0.0 + 2.0 * math.exp(1.5)) / 3, rel=1e-6)
+    # gradients never flow into the quasimetric through the weights
+    g = jax.grad(lambda adv: policy.awr_loss(logp, adv, 3.0, 100.0)[0])(adv)
+    np.testing.assert_array_equal(g, 0.0)
+
+
+def test_direction_conditioning():
+    obs, goal = jnp.array([[1.0, 1.0, 7.0]]), jnp.array([[4.0, 5.0, -3.0]])
+    np.testing.assert_allclose(policy.goal_input(obs, goal, 'direction'), [[0.6, 0.8]], atol=1e-6)
+    np.testing.assert_array_equal(policy.goal_input(obs, goal, 'goal'), goal)
+    with pytest.raises(ValueError, match='conditioning'):
+        policy.goal_input(obs, goal, 'polar')
+
+
+# ---------------------------------------------------------------------------------------- config
+def test_config_presets_validation_and_json():
+    paper = train.TrainConfig.preset('paper', env='antmaze-large')
+    assert (paper.q_hidden, paper.n_components, paper.component_size, paper.batch_size, paper.steps) == (
+        (512, 512, 512), 512, 1, 1024, 1_000_000)
+    assert (paper.lr_quasimetric, paper.lr_policy, paper.lr_lambda, paper.lambda_init, paper.temperature) == (
+        1e-4, 3e-4, 1e-2, 1.0, 3.0)
+    assert paper.offset == 125.0 and train.TrainConfig.preset('cpu', env='antmaze-giant').offset == 250.0
+    assert train.TrainConfig.preset('cpu', qrl='ogbench').offset == 500.0
+    cfg = train.TrainConfig.preset('cpu').with_overrides(['batch_size=64', 'q_hidden=64,32', 'objective=bc',
+                                                          'push_offset=30'])
+    assert (cfg.batch_size, cfg.q_hidden, cfg.objective, cfg.offset) == (64, (64, 32), 'bc', 30.0)
+    assert train.TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    for bad, msg in ((dict(objective='ppo'), 'unknown objective'), (dict(steps=1001), 'multiple of updates_per_call'),
+                     (dict(conditioning='polar'), 'unknown conditioning'), (dict(lr_policy=-1.0), 'lr_policy'),
+                     (dict(env='antmaze-huge'), 'unknown environment'), (dict(env=None), 'push_offset')):
+        with pytest.raises(ValueError, match=msg):
+            train.TrainConfig.preset('cpu', **bad)
+    with pytest.raises(ValueError, match='unknown preset'):
+        train.TrainConfig.preset('gpu')
+    with pytest.raises(ValueError, match='unknown config field'):
+        cfg.with_overrides(['learning_rate=1'])
+
+
+def test_infer_env():
+    assert train.infer_env('/data/antmaze-large-navigate-v0.npz') == ('antmaze-large', 'navigate')
+    assert train.infer_env('pointmaze-medium-explore.npz') == ('pointmaze-medium', 'explore')
+    with pytest.raises(ValueError, match='pass --env'):
+        train.infer_env('my_data.npz')
+
+
+# ----------------------------------------------------------------------------------- calibration
+def _grid_config(**kw):
+    base = dict(env=None, push_offset=30.0, push_scale=0.1, steps=6000, batch_size=256, updates_per_call=500,
+                log_every=500, checkpoint_every=500, q_hidden=(64, 64), n_components=64, pi_hidden=(32,),
+                lr_quasimetric=1e-3, subgoal_offset=3)
+    return train.TrainConfig.preset('tiny', **{**base, **kw})
+
+
+def test_quasimetric_calibrates_on_a_directed_grid():
+    grid = synthetic.one_way_grid(5, one_way_column=2, open_rows=(4,))
+    data = synthetic.grid_walks(grid, episodes=400, steps=40, seed=0)
+    truth = synthetic.shortest_steps(grid)
+    cfg = _grid_config()
+    learner = train.make_learner(cfg, obs_size=2, action_size=2)
+    state = learner.init(jax.random.PRNGKey(0))
+    ds = dsm.to_device(data)
+    for _ in range(cfg.steps // cfg.updates_per_call):
+        state, m = learner.chunk(state, ds)
+    cells = np.array([(x, y) for x in range(5) for y in range(5)], np.float32)
+    d = np.asarray(jax.jit(learner.distance)(state.q_params, cells[:, None], cells[None]))
+    off = ~np.eye(25, dtype=bool)
+    rho = spearmanr(d[off], truth[off]).correlation
+    assert rho >= 0.9, rho
+    # asymmetric where the graph is: (2, 0) -> (3, 0) is one step, the way back a 9-step detour
+    a, b = 2 * 5 + 0, 3 * 5 + 0
+    assert truth[a, b] == 1 and truth[b, a] == 9
+    assert d[b, a] > 3 * d[a, b], (d[a, b], d[b, a])
+    assert float(m['qrl/lambda']) >= 0
+
+
+# ----------------------------------------------------------------------------------- checkpoints
+def _write_grid_dataset(tmp_path):
+    data = synthetic.grid_walks(synthetic.one_way_grid(5), episodes=50, steps=20, seed=1)
+    path = str(tmp_path / 'grid.npz')
+    dsm.write_ogbench(path, {k: data[k] for k in ('observations', 'actions', 'terminals')})
+    return path
+
+
+def _train_cmd(dataset, out, steps, *extra):
+    return [sys.executable, '-m', 'aqm_mjx.cli', 'train', '--dataset', dataset, '--env', 'pointmaze-medium', '--preset',
+            'tiny', '--set', 'checkpoint_every=50', '--set', 'updates_per_call=50', '--set', 'log_every=50',
+            '--set', 'keep=20', '--steps', str(steps), '--out', out, *extra]
+
+
+def _params(run):
+    t = train.load(run, log=lambda *_: None)
+    return t.step, jax.tree.leaves(t.state)
+
+
+def test_resume_after_kill_is_bit_identical(tmp_path):
+    dataset = _write_grid_dataset(tmp_path)
+    env = dict(os.environ, JAX_PLATFORMS='cpu')
+    ref, cut = str(tmp_path / 'ref'), str(tmp_path / 'cut')
+    subprocess.run(_train_cmd(dataset, ref, 300), check=True, env=env, capture_output=True)
+    proc = subprocess.Popen(_train_cmd(dataset, cut, 10 ** 7), env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    ckdir = os.path.join(cut, 'checkpoints')
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        done = [s for s in (os.listdir(ckdir) if os.path.isdir(ckdir) else []) if s.isdigit()]
+        if done:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    steps_at_kill = sorted(int(s) for s in os.listdir(ckdir) if s.isdigit())
+    assert steps_at_kill and steps_at_kill[-1] < 300
+    subprocess.run(_train_cmd(dataset, cut, 300, '--resume'), check=True, env=env, capture_output=True)
+    s_ref, leaves_ref = _params(ref)
+    s_cut, leaves_cut = _params(cut)
+    assert s_ref == s_cut == 300
+    assert len(leaves_ref) == len(leaves_cut)
+    for x, y in zip(leaves_ref, leaves_cut):
+        assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+    steps_logged = [json.loads(ln)['step'] for ln in open(os.path.join(cut, 'metrics.jsonl'))]
+    assert steps_logged == sorted(set(steps_logged)) and steps_logged[-1] == 300  # no duplicate lines
+
+
+def test_unreadable_newest_checkpoint_falls_back(tmp_path, capsys):
+    dataset = _write_grid_dataset(tmp_path)
+    out = str(tmp_path / 'run')
+    assert cli.main(['train', '--dataset', dataset, '--env', 'pointmaze-medium', '--preset', 'tiny', '--out', out]) == 0
+    ck = os.path.join(out, 'checkpoints')
+    assert sorted(int(s) for s in os.listdir(ck) if s.isdigit()) == [100, 200]
+    # corrupt every file of the newest checkpoint
+    for root, _, files in os.walk(os.path.join(ck, '200')):
+        for f in files:
+            with open(os.path.join(root, f), 'wb') as fh:
+                fh.write(b'garbage')
+    logs = []
+    with pytest.warns(RuntimeWarning, match='falling back'):
+        t = train.load(out, log=logs.append)
+    assert t.step == 100 and 'checkpoint 200' in logs[0]
+    a = t.learner.act(t.state.pi_params, jnp.zeros((3, 2)), jnp.ones((3, 2)))
+    assert a.shape == (3, 2)
+    # a new run refuses to write over it; a bad dataset is named
+    assert cli.main(['train', '--dataset', dataset, '--env', 'pointmaze-medium', '--preset', 'tiny', '--out', out]) == 2
+    assert '--resume' in capsys.readouterr().err
+    assert cli.main(['train', '--dataset', dataset, '--env', 'antmaze-medium', '--out', str(tmp_path / 'r2')]) == 2
+    assert 'observations are 2-d but the environment expects 29' in capsys.readouterr().err
