@@ -1,0 +1,244 @@
+"""The AQM agent at test time, vectorised: every environment follows its own keypoint plan, keeps a
+time budget on the edge it traverses and, on overrun, prunes that edge in its own copy of the graph
+and replans (paper section 4.5). Physics, policy, planning and pruning run in one jitted program:
+``lax.scan`` over control steps, ``vmap`` over environments, no host round trip per step.
+
+Agent rules (per environment; fields of :class:`AgentConfig`):
+
+- Start: attach the state and the goal to the graph (:func:`aqm_mjx.plan.attach`, radius ``tau``)
+  and take the best plan s -> z_first -> ... -> z_last -> g (or go straight to g).
+- Subgoal switching: the target keypoint z_j counts as reached when ``d(s, z_j) <= switch_radius``.
+  From a reached keypoint the agent re-chooses the best last keypoint and steps to the next hop of
+  its Floyd-Warshall path; at the last keypoint the target becomes the goal.
+- Budget: the edge z_i -> z_j gets ``B = (1 + kappa) * w(z_i, z_j)`` control steps. On overrun the
+  agent sets ``w(z_i, z_j) = inf`` in its own weight matrix, heads back to z_i (no budget on the
+  way back) and replans there with the pruned graph. The legs from the start and into the goal are
+  not budgeted (they are not graph edges). ``kappa = inf`` disables pruning.
+- ``use_graph=False`` is the flat policy: the target is always the goal.
+
+The quasimetric, the encoder of states into its inputs and the low-level controller are functions
+of an ``aux`` pytree passed as an argument (so parameters and tables are not compile-time constants).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from aqm_mjx import plan as planning
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentConfig:
+    """Test-time rules of the agent (units are the quasimetric's: control steps)."""
+
+    kappa: float = 0.25  # budget slack: B = (1 + kappa) * d(z_i, z_j); inf disables pruning (see README)
+    switch_radius: float = 5.0  # a keypoint is reached when d(s, z) <= switch_radius
+    tau: float = 20.0  # attachment radius of the start and the goal (the graph's tau)
+    use_graph: bool = True  # False: the flat policy, aimed at the goal all the time
+
+    def __post_init__(self):
+        if not (self.kappa >= 0):
+            raise ValueError(f'kappa must be >= 0 (inf disables pruning); got {self.kappa}')
+        if not (self.switch_radius > 0 and self.tau > 0):
+            raise ValueError('switch_radius and tau must be > 0')
+
+
+@struct.dataclass
+class Graph:
+    """The keypoint graph an agent plans on.
+
+    Attributes:
+        z: ``[K, L]`` keypoints as inputs of the quasimetric (latents).
+        obs: ``[K, D]`` keypoint observations (what the controller is given as a subgoal).
+        mask: bool ``[K]`` valid keypoints.
+        w: ``[K, K]`` edge weights (``inf``: no edge).
+    """
+
+    z: jax.Array
+    obs: jax.Array
+    mask: jax.Array
+    w: jax.Array
+
+
+@struct.dataclass
+class AgentState:
+    """One environment's planner state (a leading batch axis when vmapped)."""
+
+    w: jax.Array  # [K, K] this environment's (pruned) weights
+    dist: jax.Array  # [K, K] all-pairs distances of w
+    nxt: jax.Array  # int32 [K, K] next hops of w
+    to_g: jax.Array  # [K] keypoint -> goal attachment weights
+    node: jax.Array  # int32 target keypoint (-1: the goal)
+    prev: jax.Array  # int32 keypoint the budgeted edge started at (-1: no budget running)
+    t_edge: jax.Array  # int32 steps spent on the current leg
+    budget: jax.Array  # float32 steps allowed on the current edge (inf: none)
+    pruned: jax.Array  # int32 edges pruned so far
+    needs_replan: jax.Array  # bool: w changed this step
+
+
+def agent_init(dist: Callable, graph: Graph, cfg: AgentConfig, s: jax.Array, g: jax.Array,
+               use_graph: jax.Array = True) -> AgentState:
+    """Plan from latent ``s [L]`` to latent ``g [L]`` on ``graph`` (one environment)."""
+    d_kk, nxt = planning.floyd_warshall(graph.w)
+    from_s, to_g, direct = planning.attach(dist, graph.z, graph.mask, s, g, cfg.tau)
+    p = planning.plan(d_kk, from_s, to_g, direct)
+    node = jnp.where(use_graph, p.first, -1).astype(jnp.int32)
+    return AgentState(w=graph.w, dist=d_kk, nxt=nxt.astype(jnp.int32), to_g=to_g, node=node,
+                      prev=jnp.int32(-1), t_edge=jnp.int32(0), budget=jnp.float32(jnp.inf),
+                      pruned=jnp.int32(0), needs_replan=jnp.bool_(False))
+
+
+def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
+               kappa: jax.Array) -> AgentState:
+    """Update one environment's target for the current latent ``s [L]`` (switch, time, prune)."""
+    k = jnp.maximum(a.node, 0)
+    reached = (a.node >= 0) & (dist(s, graph.z[k]) <= cfg.switch_radius)
+    # SWITCH: from the reached keypoint, the best last keypoint and the next hop towards it
+    total = a.dist[k] + a.to_g
+    last = jnp.argmin(total).astype(jnp.int32)
+    hop = jnp.where(k == last, -1, a.nxt[k, last])
+    hop = jnp.where(jnp.isfinite(total[last]) & (hop >= 0) | (k == last), hop, -1)  # unreachable: aim at g
+    budget = jnp.where(hop >= 0, (1.0 + kappa) * a.w[k, jnp.maximum(hop, 0)], jnp.inf)
+    # OVERRUN: prune the edge, head back to where it started
+    t = a.t_edge + 1
+    overrun = ~reached & (a.prev >= 0) & (a.node >= 0) & (t > a.budget)
+    i, j = jnp.maximum(a.prev, 0), k
+    w = jnp.where(overrun, a.w.at[i, j].set(jnp.inf), a.w)
+    node = jnp.where(reached, hop, jnp.where(overrun, a.prev, a.node)).astype(jnp.int32)
+    prev = jnp.where(reached, jnp.where(hop >= 0, k, -1), jnp.where(overrun, -1, a.prev)).astype(jnp.int32)
+    return a.replace(w=w, node=node, prev=prev, t_edge=jnp.where(reached | overrun, 0, t).astype(jnp.int32),
+                     budget=jnp.where(reached, budget, jnp.where(overrun, jnp.inf, a.budget)).astype(jnp.float32),
+                     pruned=a.pruned + overrun.astype(jnp.int32), needs_replan=overrun)
+
+
+def replan(a: AgentState) -> AgentState:
+    """Recompute distances and next hops of a batch of agents, only if one of them pruned an edge
+    (a real conditional outside ``vmap``: replanning costs nothing on steps without overruns)."""
+
+    def fw(w):
+        d, n = planning.floyd_warshall_batch(w)
+        return d, n.astype(jnp.int32)
+
+    d, n = jax.lax.cond(jnp.any(a.needs_replan), fw, lambda w: (a.dist, a.nxt), a.w)
+    return a.replace(dist=d, nxt=n)
+
+
+def make_evaluate(env, encode: Callable, dist: Callable, controller: Callable, cfg: AgentConfig, steps: int):
+    """Build the jittable evaluation program.
+
+    Args:
+        env: a :class:`aqm_mjx.envs.MazeEnv`.
+        encode: ``(aux, obs [D]) -> latent [L]``.
+        dist: ``(aux, latent, latent) -> scalar`` time-to-reach.
+        controller: ``(aux, obs [D], subgoal_obs [D], t, key) -> action [A]``.
+        cfg: agent rules; steps: control steps per episode.
+    Returns:
+        ``run(aux, graph, keys [B, 2, 2], task_ids [B], grids [B, H, W], kappa [B], use_graph [B])
+        -> dict`` with ``success [B]`` (success at the last step), ``pruned [B]``, ``xy [T, B, 2]``
+        and ``node [T, B]``. ``kappa`` and ``use_graph`` per environment put ablations (no pruning
+        with ``kappa = inf``, several kappas, the flat policy) in one batch; ``cfg.kappa`` and
+        ``cfg.use_graph`` are the defaults of :func:`defaults`.
+    """
+
+    def run(aux: Any, graph: Graph, keys, task_ids, grids, kappa, use_graph):
+        d = lambda x, y: dist(aux, x, y)  # noqa: E731
+        k_reset, k_act = keys[:, 0], keys[:, 1]
+        states = jax.vmap(env.reset)(k_reset, task_ids, grids)
+        enc = jax.vmap(lambda o: encode(aux, o))
+        agents = jax.vmap(lambda s, g, u: agent_init(d, graph, cfg, s, g, u))(enc(states.obs), enc(states.goal),
+                                                                               use_graph)
+
+        def body(carry, t):
+            states, agents = carry
+            # PLAN: switch, time and prune per environment, then replan where an edge was cut
+            agents = jax.vmap(lambda a, s, kp: agent_step(d, graph, cfg, a, s, kp))(agents, enc(states.obs), kappa)
+            agents = replan(agents)
+            sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], states.goal)
+            # ACT and STEP
+            keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)
+            actions = jax.vmap(lambda o, g, k: controller(aux, o, g, t, k))(states.obs, sub, keys_t)
+            states = jax.vmap(env.step)(states, jnp.clip(actions, -1.0, 1.0))
+            return (states, agents), (states.data.qpos[:, :2], agents.node)
+
+        (states, agents), (xy, node) = jax.lax.scan(body, (states, agents), jnp.arange(steps))
+        return dict(success=states.success, pruned=agents.pruned, xy=xy, node=node, goal_xy=states.goal_xy)
+
+    return run
+
+
+def split_keys(key: jax.Array, n: int) -> jax.Array:
+    """``[n, 2, 2]`` keys: (reset, actions) per episode."""
+    return jax.random.split(key, (n, 2))
+
+
+def defaults(cfg: AgentConfig, n: int) -> tuple[jax.Array, jax.Array]:
+    """Per-environment ``(kappa [n], use_graph [n])`` from the config."""
+    return jnp.full((n,), cfg.kappa, jnp.float32), jnp.full((n,), cfg.use_graph, bool)
+
+
+# ------------------------------------------------------------------ exact maze distance (no learning)
+def maze_distance_aux(grid, sub: int = 4, speed: float = 0.12) -> dict:
+    """A stand-in quasimetric: exact shortest-path length in ``grid`` (``sub x sub`` squares per
+    cell) divided by ``speed`` (m per control step), i.e. a time-to-reach in control steps.
+    Use with :func:`maze_encode` and :func:`maze_dist`."""
+    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
+
+    g = jnp.asarray(grid)
+    return dict(table=jnp.asarray(mazes.geodesic_table(grid, sub)) / speed, shape=jnp.array(g.shape, jnp.int32) * sub)
+
+
+def maze_encode(aux: dict, obs: jax.Array, sub: int = 4) -> jax.Array:
+    """``obs [D]`` -> ``[1]`` float index of its square in :func:`maze_distance_aux`'s table."""
+    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
+
+    step = mazes.MAZE_UNIT / sub
+    col = jnp.floor((obs[0] + mazes.MAZE_OFFSET + mazes.MAZE_UNIT / 2) / step).astype(jnp.int32)
+    row = jnp.floor((obs[1] + mazes.MAZE_OFFSET + mazes.MAZE_UNIT / 2) / step).astype(jnp.int32)
+    h, w = aux['shape'][0], aux['shape'][1]
+    return (jnp.clip(row, 0, h - 1) * w + jnp.clip(col, 0, w - 1)).astype(jnp.float32)[None]
+
+
+def maze_dist(aux: dict, x: jax.Array, y: jax.Array) -> jax.Array:
+    return aux['table'][x[0].astype(jnp.int32), y[0].astype(jnp.int32)]
+
+
+def maze_graph(grid, delta: float = 4.0, speed: float = 0.12, sub: int = 4, max_keypoints: int = 128,
+               obs_size: int = 29, seed: int = 0) -> tuple[dict, Graph]:
+    """IWE keypoints and their tau = 2 delta graph under the exact maze distance of ``grid``.
+
+    Args:
+        delta: repel radius in metres (converted to steps with ``speed``).
+    Returns:
+        (aux for :func:`maze_encode` / :func:`maze_dist`, :class:`Graph` whose keypoint observations
+        hold the squares' centre x-y in their first two entries, zeros elsewhere).
+    """
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx import graph as graphs  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import keypoints  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
+
+    aux = maze_distance_aux(grid, sub, speed)
+    free = np.flatnonzero(np.isfinite(np.asarray(aux['table'])).any(1))
+    cand = jnp.asarray(free, jnp.float32)[:, None]
+    d = lambda x, y: maze_dist(aux, x, y)  # noqa: E731
+    d_steps = delta / speed
+    kp = keypoints.iwe(d, cand, jax.random.PRNGKey(seed), d_steps, max_keypoints)
+    if bool(kp.overflow):
+        raise ValueError(f'more than {max_keypoints} keypoints at delta {delta} m; raise max_keypoints')
+    idx = free[np.asarray(kp.index)[np.asarray(kp.mask)]]
+    k = len(idx)
+    z = jnp.asarray(idx, jnp.float32)[:, None]
+    mask = jnp.ones(k, bool)
+    w = graphs.build_graph(d, z, mask, d_steps)
+    side = mazes.MAZE_UNIT / sub
+    rows, cols = np.divmod(idx, int(aux['shape'][1]))
+    obs = np.zeros((k, obs_size), np.float32)
+    obs[:, 0] = cols * side - mazes.MAZE_OFFSET - mazes.MAZE_UNIT / 2 + side / 2
+    obs[:, 1] = rows * side - mazes.MAZE_OFFSET - mazes.MAZE_UNIT / 2 + side / 2
+    return aux, Graph(z=z, obs=jnp.asarray(obs), mask=mask, w=w)

@@ -1,0 +1,105 @@
+"""The test-time agent: planning, budgets, pruning and replanning inside one jitted program, shown
+without learning (exact maze distance as the quasimetric, the scripted expert as the controller)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from aqm_mjx import envs, expert, plan, rollout
+from aqm_mjx.envs import mazes
+
+
+def _agent_step_case():
+    # 3 keypoints on a line, latents are positions; d = |x - y|.
+    dist = lambda x, y: jnp.abs(x[0] - y[0])  # noqa: E731
+    z = jnp.array([[0.0], [10.0], [20.0]])
+    w = jnp.array([[0, 10, jnp.inf], [10, 0, 10], [jnp.inf, 10, 0]], jnp.float32)
+    g = rollout.Graph(z=z, obs=jnp.zeros((3, 2)), mask=jnp.ones(3, bool), w=w)
+    cfg = rollout.AgentConfig(kappa=0.5, switch_radius=1.0, tau=6.0)
+    return dist, g, cfg
+
+
+def test_agent_switches_budgets_and_prunes_by_hand():
+    dist, g, cfg = _agent_step_case()
+    a = rollout.agent_init(dist, g, cfg, jnp.array([0.5]), jnp.array([20.5]))
+    assert int(a.node) == 0 and int(a.prev) == -1 and not np.isfinite(float(a.budget))
+    a = rollout.agent_step(dist, g, cfg, a, jnp.array([0.2]), 0.5)  # reaches z0: next hop z1, budget 15
+    assert (int(a.node), int(a.prev), float(a.budget), int(a.t_edge)) == (1, 0, 15.0, 0)
+    for _ in range(15):
+        a = rollout.agent_step(dist, g, cfg, a, jnp.array([3.0]), 0.5)
+    assert int(a.pruned) == 0 and int(a.t_edge) == 15
+    a = rollout.agent_step(dist, g, cfg, a, jnp.array([3.0]), 0.5)  # step 16 > budget: prune 0 -> 1
+    assert int(a.pruned) == 1 and bool(a.needs_replan) and int(a.node) == 0 and int(a.prev) == -1
+    assert not np.isfinite(float(a.w[0, 1])) and float(a.w[1, 0]) == 10.0
+    a = rollout.replan(jax.tree.map(lambda x: x[None], a))
+    a = jax.tree.map(lambda x: x[0], a)
+    assert int(a.nxt[0, 2]) == -1  # goal side now unreachable from z0
+    a = rollout.agent_step(dist, g, cfg, a, jnp.array([0.0]), 0.5)  # back at z0: no path, aim at the goal
+    assert int(a.node) == -1
+    # kappa = inf never prunes
+    b = rollout.agent_init(dist, g, cfg, jnp.array([0.5]), jnp.array([20.5]))
+    b = rollout.agent_step(dist, g, cfg, b, jnp.array([0.2]), jnp.inf)
+    for _ in range(100):
+        b = rollout.agent_step(dist, g, cfg, b, jnp.array([3.0]), jnp.inf)
+    assert int(b.pruned) == 0 and int(b.node) == 1
+
+
+def _scenario(agent, n, steps, kappas):
+    """antmaze/pointmaze-medium task 4, the shortest route's corridor cell (5, 3) closed."""
+    base = mazes.layout('medium')
+    closed = base.copy()
+    closed[5, 3] = 1
+    env = envs.make(f'{agent}maze-medium')
+    speed = 0.12 if agent == 'ant' else 0.15
+    aux, graph = rollout.maze_graph(base, delta=4.0, speed=speed, obs_size=env.obs_size)
+    aux['bfs'] = jnp.asarray(expert.bfs_next_cell(base))  # the controller knows only the training layout
+
+    def controller(aux, o, g, t, key):
+        cmd = expert.waypoint_command(o[:2], g[:2], aux['bfs'], base.shape)
+        if agent == 'ant':
+            return expert.gait_action(o[:15], o[15:], cmd, t)
+        return cmd / (jnp.linalg.norm(cmd) + 1e-6)
+
+    cfg = rollout.AgentConfig(switch_radius=1.5 / speed, tau=2 * 4.0 / speed)
+    traces = []
+
+    def counted(*args):
+        traces.append(1)
+        return rollout.make_evaluate(env, rollout.maze_encode, rollout.maze_dist, controller, cfg, steps)(*args)
+
+    run = jax.jit(counted)
+    b = n * len(kappas)
+    kappa = jnp.repeat(jnp.asarray(kappas, jnp.float32), n)
+    grids = jnp.broadcast_to(jnp.asarray(closed, jnp.int8), (b,) + base.shape)
+    out = run(aux, graph, rollout.split_keys(jax.random.PRNGKey(0), b), jnp.full((b,), 4, jnp.int32), grids, kappa,
+              jnp.ones(b, bool))
+    return jax.device_get(out), run, (aux, graph, base, b, kappa), traces
+
+
+def _check(out, n, kappas):
+    rates = {k: float(out['success'][i * n:(i + 1) * n].mean()) for i, k in enumerate(kappas)}
+    assert rates[0.25] >= 0.9, rates
+    assert rates[float('inf')] <= 0.2, rates
+    assert out['pruned'][:n].min() >= 1 and out['pruned'][n:].max() == 0
+    return rates
+
+
+def test_pruning_reroutes_the_point_around_a_closed_corridor_and_compiles_once():
+    kappas = [0.25, float('inf')]
+    out, run, (aux, graph, base, b, kappa), traces = _scenario('point', 10, 400, kappas)
+    _check(out, 10, kappas)
+    # a second call with other tasks, seeds and walls does not recompile
+    grids = jnp.broadcast_to(jnp.asarray(base, jnp.int8), (b,) + base.shape)
+    out2 = jax.device_get(run(aux, graph, rollout.split_keys(jax.random.PRNGKey(7), b), (jnp.arange(b) % 5 + 1).astype(jnp.int32),
+                              grids, kappa, jnp.ones(b, bool)))
+    assert len(traces) == 1
+    assert out2['success'][:10].mean() >= 0.9  # open maze, tasks 1..5
+
+
+@pytest.mark.slow  # about 3 minutes on the 2-core CPU
+def test_pruning_reroutes_the_ant_around_a_closed_corridor():
+    kappas = [0.25, float('inf')]
+    out, *_ = _scenario('ant', 20, 1000, kappas)
+    rates = _check(out, 20, kappas)
+    print('ant, closed corridor, 20 episodes each:', rates, 'edges pruned (kappa 0.25):', out['pruned'][:20].tolist())
