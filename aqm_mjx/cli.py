@@ -100,8 +100,8 @@ def cmd_run(a):
     os.makedirs(a.out, exist_ok=True)
     env = envs.make(a.env)
     print(f'{env}\ndevice: {jax.devices()[0]}; {a.envs} environments x {a.steps} control steps (random actions)')
-    print('note: data collection, training, keypoints and evaluation are not built yet; this run '
-          'exercises the MJX environments only.')
+    print('note: this run exercises the MJX environments only; `aqm-mjx collect` and `aqm-mjx train` make '
+          'datasets and models; the whole pipeline as one run is not built yet.')
     n_tasks = env.num_tasks
     keys = jax.random.split(jax.random.PRNGKey(a.seed), a.envs)
     task_ids = jnp.arange(a.envs) % n_tasks + 1

@@ -11,8 +11,8 @@ Agent rules (per environment; fields of :class:`AgentConfig`):
   From a reached keypoint the agent re-chooses the best last keypoint and steps to the next hop of
   its Floyd-Warshall path; at the last keypoint the target becomes the goal.
 - Budget: the edge z_i -> z_j gets ``B = (1 + kappa) * w(z_i, z_j)`` control steps. On overrun the
-  agent sets ``w(z_i, z_j) = inf`` in its own weight matrix, heads back to z_i (no budget on the
-  way back) and replans there with the pruned graph. The legs from the start and into the goal are
+  agent sets ``w(z_i, z_j) = inf`` in its own weight matrix, replans, and heads from where it is to
+  the next hop after z_i on the new best path, as the budgeted edge z_i -> hop. The legs from the start and into the goal are
   not budgeted (they are not graph edges). ``kappa = inf`` disables pruning.
 - ``use_graph=False`` is the flat policy: the target is always the goal.
 
@@ -116,6 +116,20 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
                      pruned=a.pruned + overrun.astype(jnp.int32), needs_replan=overrun)
 
 
+def redirect(a: AgentState, kappa: jax.Array) -> AgentState:
+    """After a prune and :func:`replan`: from the pruned edge's start z_i, take the next hop of the
+    new best path straight away (a budgeted edge z_i -> hop), rather than walking back to z_i."""
+    i = jnp.maximum(a.node, 0)  # agent_step pointed node back at z_i
+    total = a.dist[i] + a.to_g
+    last = jnp.argmin(total).astype(jnp.int32)
+    hop = jnp.where((i == last) | ~jnp.isfinite(total[last]), -1, a.nxt[i, last])
+    budget = jnp.where(hop >= 0, (1.0 + kappa) * a.w[i, jnp.maximum(hop, 0)], jnp.inf)
+    go = a.needs_replan
+    return a.replace(node=jnp.where(go, hop, a.node).astype(jnp.int32),
+                     prev=jnp.where(go, jnp.where(hop >= 0, i, -1), a.prev).astype(jnp.int32),
+                     budget=jnp.where(go, budget, a.budget).astype(jnp.float32), t_edge=jnp.where(go, 0, a.t_edge))
+
+
 def replan(a: AgentState) -> AgentState:
     """Recompute distances and next hops of a batch of agents, only if one of them pruned an edge
     (a real conditional outside ``vmap``: replanning costs nothing on steps without overruns)."""
@@ -158,6 +172,7 @@ def make_evaluate(env, encode: Callable, dist: Callable, controller: Callable, c
             # PLAN: switch, time and prune per environment, then replan where an edge was cut
             agents = jax.vmap(lambda a, s, kp: agent_step(d, graph, cfg, a, s, kp))(agents, enc(states.obs), kappa)
             agents = replan(agents)
+            agents = jax.vmap(redirect)(agents, kappa)
             sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], states.goal)
             # ACT and STEP
             keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)

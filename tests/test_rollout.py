@@ -35,8 +35,8 @@ def test_agent_switches_budgets_and_prunes_by_hand():
     a = rollout.replan(jax.tree.map(lambda x: x[None], a))
     a = jax.tree.map(lambda x: x[0], a)
     assert int(a.nxt[0, 2]) == -1  # goal side now unreachable from z0
-    a = rollout.agent_step(dist, g, cfg, a, jnp.array([0.0]), 0.5)  # back at z0: no path, aim at the goal
-    assert int(a.node) == -1
+    a = jax.tree.map(lambda x: x[0], jax.vmap(rollout.redirect)(jax.tree.map(lambda x: x[None], a), jnp.array([0.5])))
+    assert int(a.node) == -1 and int(a.prev) == -1  # no path left from z0: aim at the goal
     # kappa = inf never prunes
     b = rollout.agent_init(dist, g, cfg, jnp.array([0.5]), jnp.array([20.5]))
     b = rollout.agent_step(dist, g, cfg, b, jnp.array([0.2]), jnp.inf)
