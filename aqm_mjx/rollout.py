@@ -191,6 +191,19 @@ def split_keys(key: jax.Array, n: int) -> jax.Array:
     return jax.random.split(key, (n, 2))
 
 
+def episode_inputs(key: jax.Array, task_ids, grids, kappa, use_graph) -> tuple:
+    """``(keys, task_ids, grids, kappa, use_graph)`` for ``run`` with fixed dtypes (int32, int8,
+    float32, bool), so that new tasks, seeds, walls or kappas never change the compiled signature."""
+    task_ids = jnp.asarray(task_ids, jnp.int32)
+    n = task_ids.shape[0]
+    grids = jnp.asarray(grids, jnp.int8)
+    if grids.ndim == 2:
+        grids = jnp.broadcast_to(grids, (n,) + grids.shape)
+    kappa = jnp.broadcast_to(jnp.asarray(kappa, jnp.float32), (n,))
+    use_graph = jnp.broadcast_to(jnp.asarray(use_graph, bool), (n,))
+    return split_keys(key, n), task_ids, grids, kappa, use_graph
+
+
 def defaults(cfg: AgentConfig, n: int) -> tuple[jax.Array, jax.Array]:
     """Per-environment ``(kappa [n], use_graph [n])`` from the config."""
     return jnp.full((n,), cfg.kappa, jnp.float32), jnp.full((n,), cfg.use_graph, bool)

@@ -90,9 +90,8 @@ def test_pruning_reroutes_the_point_around_a_closed_corridor_and_compiles_once()
     out, run, (aux, graph, base, b, kappa), traces = _scenario('point', 10, 400, kappas)
     _check(out, 10, kappas)
     # a second call with other tasks, seeds and walls does not recompile
-    grids = jnp.broadcast_to(jnp.asarray(base, jnp.int8), (b,) + base.shape)
-    out2 = jax.device_get(run(aux, graph, rollout.split_keys(jax.random.PRNGKey(7), b), (jnp.arange(b) % 5 + 1).astype(jnp.int32),
-                              grids, kappa, jnp.ones(b, bool)))
+    inputs = rollout.episode_inputs(jax.random.PRNGKey(7), np.arange(b) % 5 + 1, base, np.asarray(kappa), True)
+    out2 = jax.device_get(run(aux, graph, *inputs))
     assert len(traces) == 1
     assert out2['success'][:10].mean() >= 0.9  # open maze, tasks 1..5
 
