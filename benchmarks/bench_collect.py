@@ -16,15 +16,14 @@ Row 'navigate 100K': :func:`aqm_mjx.collect.collect` end to end for ``--dataset-
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
 
 import jax
 import numpy as np
 
 from aqm_mjx import collect, envs
+
+from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
 
 def mjx_rate(env_name, batch, steps, seed=0):
@@ -94,12 +93,7 @@ def main():
         r['vs_ogbench_loop_time'] = round((s['transitions'] / base['transitions_per_s']) / s['wall_s'], 2)
         print(r, flush=True)
         rows.append(r)
-    meta = dict(backend=jax.default_backend(), device=str(jax.devices()[0]), cpu_count=os.cpu_count(),
-                machine=platform.machine(), jax=jax.__version__)
-    print(json.dumps(meta))
-    if a.out:
-        with open(a.out, 'w') as f:
-            json.dump(dict(meta=meta, rows=rows), f, indent=1)
+    finish(rows, a.out)
 
 
 if __name__ == '__main__':

@@ -13,9 +13,6 @@ The 'hours for the preset' column is the preset's total updates at the measured 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
 
 import jax
@@ -23,6 +20,8 @@ import numpy as np
 
 from aqm_mjx import dataset as dsm
 from aqm_mjx import train
+
+from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
 
 def rate(preset, calls, upc, objective='saw'):
@@ -70,12 +69,7 @@ def main():
             r = rate(preset, a.calls, upc, obj)
             print(r, flush=True)
             rows.append(r)
-    meta = dict(backend=jax.default_backend(), device=str(jax.devices()[0]), cpu_count=os.cpu_count(),
-                machine=platform.machine(), jax=jax.__version__)
-    print(json.dumps(meta))
-    if a.out:
-        with open(a.out, 'w') as f:
-            json.dump(dict(meta=meta, rows=rows), f, indent=1)
+    finish(rows, a.out)
 
 
 if __name__ == '__main__':

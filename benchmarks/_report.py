@@ -1,0 +1,19 @@
+"""What every benchmark prints last: where it ran, and (with ``--out``) its rows as JSON."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+
+import jax
+
+
+def finish(rows: list, out: str | None) -> None:
+    """Print the machine line; write ``{'meta': ..., 'rows': rows}`` to ``out`` when given."""
+    meta = dict(backend=jax.default_backend(), device=str(jax.devices()[0]), cpu_count=os.cpu_count(),
+                machine=platform.machine(), jax=jax.__version__)
+    print(json.dumps(meta))
+    if out:
+        with open(out, 'w') as f:
+            json.dump(dict(meta=meta, rows=rows), f, indent=1)
