@@ -230,16 +230,20 @@ def make_learner(cfg: TrainConfig, obs_size: int, action_size: int) -> Learner:
         rand = ds.observations[jax.random.randint(k_rand, (b,), 0, ds.size)]
         lam = lam_value(state.lam)
 
-        # (A) QUASIMETRIC: one encoder pass over s, s', random goals, subgoals and policy goals
-        def q_loss(qp):
-            z = iqe.apply(qp, jnp.concatenate([s, s1, rand, w, g]), method=IQE.encode)
-            zs, zs1, zr, zw, zg = jnp.split(z, 5)
-            dist = lambda x, y: iqe.apply(qp, x, y, method=IQE.distance)  # noqa: E731
-            loss, _, info = qrl_losses(dist(zs, zs1), dist(zs, zr), lam, eps, offset, cfg.push_scale)
-            d = dict(sw=dist(zs, zw), s1w=dist(zs1, zw), sg=dist(zs, zg), s1g=dist(zs1, zg), wg=dist(zw, zg))
-            return loss, (info, jax.tree.map(jax.lax.stop_gradient, d))
+        def dist_fn(qp):
+            return lambda x, y: iqe.apply(qp, x, y, method=IQE.distance)
 
-        (q_l, (q_info, d)), q_grads = jax.value_and_grad(q_loss, has_aux=True)(state.q_params)
+        # (A) QUASIMETRIC: one encoder pass over s, s' and random goals (the rows with gradients)
+        def q_loss(qp):
+            zs, zs1, zr = jnp.split(iqe.apply(qp, jnp.concatenate([s, s1, rand]), method=IQE.encode), 3)
+            loss, _, info = qrl_losses(dist_fn(qp)(zs, zs1), dist_fn(qp)(zs, zr), lam, eps, offset, cfg.push_scale)
+            return loss, (info, jax.lax.stop_gradient(zs), jax.lax.stop_gradient(zs1))
+
+        (q_l, (q_info, zs, zs1)), q_grads = jax.value_and_grad(q_loss, has_aux=True)(state.q_params)
+        # Subgoals and goals only feed the policies' advantages: a forward pass, no backward through them
+        zw, zg = jnp.split(iqe.apply(state.q_params, jnp.concatenate([w, g]), method=IQE.encode), 2)
+        dist = dist_fn(state.q_params)
+        d = dict(sw=dist(zs, zw), s1w=dist(zs1, zw), sg=dist(zs, zg), s1g=dist(zs1, zg), wg=dist(zw, zg))
         q_updates, q_opt = q_tx.update(q_grads, state.q_opt, state.q_params)
         q_params = optax.apply_updates(state.q_params, q_updates)
 
