@@ -184,15 +184,13 @@ def cmd_train(a):
     _enable_compile_cache()
     from aqm_mjx import dataset, envs, train  # pylint: disable=import-outside-toplevel
 
-    style = None
-    env_name = a.env
-    if env_name is None and not a.resume:
-        env_name, style = train.infer_env(a.dataset)
-    elif a.dataset:
-        try:
-            style = train.infer_env(a.dataset)[1]
-        except ValueError:
-            style = None
+    try:
+        inferred, style = train.infer_env(a.dataset)
+    except ValueError:
+        if a.env is None and not a.resume:
+            raise
+        inferred, style = None, None
+    env_name = a.env or inferred
     cfg = None
     obs_size = action_size = None
     if not a.resume:

@@ -178,10 +178,13 @@ def to_device(data: dict, device=None) -> Dataset:
     n = len(term)
     ends = np.flatnonzero(term)
     traj_end = ends[np.searchsorted(ends, np.arange(n))].astype(np.int32)
+    sources = np.flatnonzero(~term).astype(np.int32)
+    if len(sources) == 0:
+        raise DatasetError('dataset has no transitions (every state is a trajectory end)')
     put = (lambda a: jax.device_put(a, device)) if device is not None else jax.device_put
     return Dataset(observations=put(np.asarray(data['observations'], np.float32)),
                    actions=put(np.asarray(data['actions'], np.float32)), traj_end=put(traj_end),
-                   valid_index=put(np.flatnonzero(~term).astype(np.int32)))
+                   valid_index=put(sources))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -21,7 +21,6 @@ from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from flax import struct
 
@@ -330,8 +329,8 @@ def train(cfg: Optional[TrainConfig], data: dict, out: str, resume: bool = False
     Returns:
         The final TrainState.
     """
-    ds_io.validate(data)
-    obs_size, action_size = data['observations'].shape[1], data['actions'].shape[1]
+    ds = ds_io.to_device(data)  # validates, and refuses a dataset without transitions
+    obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
     cfg_path = os.path.join(out, 'config.json')
     metrics_path = os.path.join(out, 'metrics.jsonl')
     if resume:
@@ -346,11 +345,8 @@ def train(cfg: Optional[TrainConfig], data: dict, out: str, resume: bool = False
         raise ValueError('a config is needed for a new run')
     if steps is not None:
         cfg = dataclasses.replace(cfg, steps=int(steps))
-    if len(np.flatnonzero(~np.asarray(data['terminals']).astype(bool))) == 0:
-        raise ds_io.DatasetError('the dataset has no transitions (every state is a trajectory end)')
     os.makedirs(out, exist_ok=True)
     learner = make_learner(cfg, obs_size, action_size)
-    ds = ds_io.to_device(data)
     meta = _meta(cfg, obs_size, action_size, dataset_path)
     saver = ckpt.Checkpointer(out, keep=cfg.keep)
     state = learner.init(jax.random.PRNGKey(cfg.seed))
@@ -417,15 +413,11 @@ def load(out: str, step: Optional[int] = None, log=print) -> Trained:
 def infer_env(path: str) -> tuple[str, Optional[str]]:
     """``.../antmaze-large-navigate-v0.npz`` -> ``('antmaze-large', 'navigate')``."""
     base = os.path.basename(path)
-    for suffix in ('.npz',):
-        base = base[: -len(suffix)] if base.endswith(suffix) else base
-    parts = base.split('-')
-    for n in (2,):
-        name = '-'.join(parts[:n])
-        try:
-            envs.parse_name(name)
-        except ValueError:
-            continue
-        style = parts[n] if len(parts) > n and parts[n] in ('navigate', 'stitch', 'explore') else None
-        return name, style
-    raise ValueError(f'cannot infer the environment from {path!r}; pass --env (e.g. antmaze-medium)')
+    parts = (base[:-4] if base.endswith('.npz') else base).split('-')
+    name = '-'.join(parts[:2])
+    try:
+        envs.parse_name(name)
+    except ValueError:
+        raise ValueError(f'cannot infer the environment from {path!r}; pass --env (e.g. antmaze-medium)') from None
+    style = parts[2] if len(parts) > 2 and parts[2] in ('navigate', 'stitch', 'explore') else None
+    return name, style

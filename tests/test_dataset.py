@@ -127,3 +127,9 @@ def test_bad_sampling_config():
         dsm.GoalSampling(p_current=0.5, p_trajectory=0.6)
     with pytest.raises(ValueError, match='discount'):
         dsm.GoalSampling(discount=1.0)
+
+
+def test_a_dataset_without_transitions_is_refused():
+    raw = fake_raw(n_traj=3, length=1, with_info=False)  # every state ends its trajectory
+    with pytest.raises(dsm.DatasetError, match='no transitions'):
+        dsm.to_device(raw)
