@@ -93,18 +93,28 @@ def agent_init(dist: Callable, graph: Graph, cfg: AgentConfig, s: jax.Array, g: 
                       pruned=jnp.int32(0), needs_replan=jnp.bool_(False))
 
 
-def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
-               kappa: jax.Array) -> AgentState:
-    """Update one environment's target for the current latent ``s [L]`` (switch, time, prune)."""
-    k = jnp.maximum(a.node, 0)
-    reached = (a.node >= 0) & (dist(s, graph.z[k]) <= cfg.switch_radius)
-    # SWITCH: from the reached keypoint, the best last keypoint and the next hop towards it
+def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """From keypoint ``k``: the next hop towards the best last keypoint (-1: aim at the goal, when
+    ``k`` is that keypoint or no path is left) and the budget of the edge ``k -> hop``."""
     total = a.dist[k] + a.to_g
     last = jnp.argmin(total).astype(jnp.int32)
-    hop = jnp.where(k == last, -1, a.nxt[k, last])
-    hop = jnp.where(jnp.isfinite(total[last]) & (hop >= 0) | (k == last), hop, -1)  # unreachable: aim at g
+    hop = jnp.where((k == last) | ~jnp.isfinite(total[last]), -1, a.nxt[k, last])
     budget = jnp.where(hop >= 0, (1.0 + kappa) * a.w[k, jnp.maximum(hop, 0)], jnp.inf)
-    # OVERRUN: prune the edge, head back to where it started
+    return hop, budget
+
+
+def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
+               kappa: jax.Array) -> AgentState:
+    """Update one environment's target for the current latent ``s [L]`` (switch, time, prune).
+
+    On an overrun the target points back at the pruned edge's start, unbudgeted; :func:`replan`
+    and :func:`redirect` then choose the next hop from there.
+    """
+    k = jnp.maximum(a.node, 0)
+    reached = (a.node >= 0) & (dist(s, graph.z[k]) <= cfg.switch_radius)
+    # SWITCH: from the reached keypoint, the next hop of the best path
+    hop, budget = _next_leg(a, k, kappa)
+    # OVERRUN: prune the edge
     t = a.t_edge + 1
     overrun = ~reached & (a.prev >= 0) & (a.node >= 0) & (t > a.budget)
     i, j = jnp.maximum(a.prev, 0), k
@@ -120,10 +130,7 @@ def redirect(a: AgentState, kappa: jax.Array) -> AgentState:
     """After a prune and :func:`replan`: from the pruned edge's start z_i, take the next hop of the
     new best path straight away (a budgeted edge z_i -> hop), rather than walking back to z_i."""
     i = jnp.maximum(a.node, 0)  # agent_step pointed node back at z_i
-    total = a.dist[i] + a.to_g
-    last = jnp.argmin(total).astype(jnp.int32)
-    hop = jnp.where((i == last) | ~jnp.isfinite(total[last]), -1, a.nxt[i, last])
-    budget = jnp.where(hop >= 0, (1.0 + kappa) * a.w[i, jnp.maximum(hop, 0)], jnp.inf)
+    hop, budget = _next_leg(a, i, kappa)
     go = a.needs_replan
     return a.replace(node=jnp.where(go, hop, a.node).astype(jnp.int32),
                      prev=jnp.where(go, jnp.where(hop >= 0, i, -1), a.prev).astype(jnp.int32),
@@ -216,19 +223,15 @@ def maze_distance_aux(grid, sub: int = 4, speed: float = 0.12) -> dict:
     Use with :func:`maze_encode` and :func:`maze_dist`."""
     from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
 
-    g = jnp.asarray(grid)
-    return dict(table=jnp.asarray(mazes.geodesic_table(grid, sub)) / speed, shape=jnp.array(g.shape, jnp.int32) * sub)
+    return dict(table=jnp.asarray(mazes.geodesic_table(grid, sub)) / speed,
+                grid_shape=jnp.array(jnp.shape(grid), jnp.int32), sub=jnp.int32(sub))
 
 
-def maze_encode(aux: dict, obs: jax.Array, sub: int = 4) -> jax.Array:
+def maze_encode(aux: dict, obs: jax.Array) -> jax.Array:
     """``obs [D]`` -> ``[1]`` float index of its square in :func:`maze_distance_aux`'s table."""
     from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
 
-    step = mazes.MAZE_UNIT / sub
-    col = jnp.floor((obs[0] + mazes.MAZE_OFFSET + mazes.MAZE_UNIT / 2) / step).astype(jnp.int32)
-    row = jnp.floor((obs[1] + mazes.MAZE_OFFSET + mazes.MAZE_UNIT / 2) / step).astype(jnp.int32)
-    h, w = aux['shape'][0], aux['shape'][1]
-    return (jnp.clip(row, 0, h - 1) * w + jnp.clip(col, 0, w - 1)).astype(jnp.float32)[None]
+    return mazes.xy_to_subcell(obs[:2], aux['grid_shape'], aux['sub'], xp=jnp).astype(jnp.float32)[None]
 
 
 def maze_dist(aux: dict, x: jax.Array, y: jax.Array) -> jax.Array:
@@ -264,9 +267,6 @@ def maze_graph(grid, delta: float = 4.0, speed: float = 0.12, sub: int = 4, max_
     z = jnp.asarray(idx, jnp.float32)[:, None]
     mask = jnp.ones(k, bool)
     w = graphs.build_graph(d, z, mask, d_steps)
-    side = mazes.MAZE_UNIT / sub
-    rows, cols = np.divmod(idx, int(aux['shape'][1]))
     obs = np.zeros((k, obs_size), np.float32)
-    obs[:, 0] = cols * side - mazes.MAZE_OFFSET - mazes.MAZE_UNIT / 2 + side / 2
-    obs[:, 1] = rows * side - mazes.MAZE_OFFSET - mazes.MAZE_UNIT / 2 + side / 2
+    obs[:, :2] = mazes.subcell_to_xy(idx, np.shape(grid), sub)
     return aux, Graph(z=z, obs=jnp.asarray(obs), mask=mask, w=w)

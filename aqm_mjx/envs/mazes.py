@@ -207,11 +207,22 @@ def geodesic_table(grid, sub: int = 2) -> np.ndarray:
     return out
 
 
-def xy_to_subcell(xy, grid_shape, sub: int = 2) -> np.ndarray:
-    """Index into :func:`geodesic_table` of points ``xy [..., 2]``."""
-    xy = np.asarray(xy, dtype=np.float64)
+def xy_to_subcell(xy, grid_shape, sub: int = 2, xp=np):
+    """Index into :func:`geodesic_table` of points ``xy [..., 2]``.
+
+    ``xp=jax.numpy`` gives the jittable version (int32; ``grid_shape`` and ``sub`` may be arrays).
+    """
+    xy = xp.asarray(xy, dtype=np.float64) if xp is np else xp.asarray(xy)
+    index_dtype = np.int64 if xp is np else jnp.int32
     step = MAZE_UNIT / sub
-    col = np.floor((xy[..., 0] + MAZE_OFFSET + MAZE_UNIT / 2) / step).astype(np.int64)
-    row = np.floor((xy[..., 1] + MAZE_OFFSET + MAZE_UNIT / 2) / step).astype(np.int64)
+    col = xp.floor((xy[..., 0] + MAZE_OFFSET + MAZE_UNIT / 2) / step).astype(index_dtype)
+    row = xp.floor((xy[..., 1] + MAZE_OFFSET + MAZE_UNIT / 2) / step).astype(index_dtype)
     h, w = grid_shape[0] * sub, grid_shape[1] * sub
-    return np.clip(row, 0, h - 1) * w + np.clip(col, 0, w - 1)
+    return xp.clip(row, 0, h - 1) * w + xp.clip(col, 0, w - 1)
+
+
+def subcell_to_xy(index, grid_shape, sub: int = 2) -> np.ndarray:
+    """Centre ``[..., 2]`` of :func:`geodesic_table` squares (the inverse of :func:`xy_to_subcell`)."""
+    row, col = np.divmod(np.asarray(index), grid_shape[1] * sub)
+    step = MAZE_UNIT / sub
+    return np.stack([col, row], -1) * step - MAZE_OFFSET - MAZE_UNIT / 2 + step / 2
