@@ -153,14 +153,7 @@ def cmd_collect(a):
     _enable_compile_cache()
     from aqm_mjx import collect  # pylint: disable=import-outside-toplevel
 
-    if not a.out.endswith('.npz'):
-        raise ValueError(f'--out must name an .npz file; got {a.out!r}')
-    from aqm_mjx.dataset import val_path  # pylint: disable=import-outside-toplevel
-
-    if not a.overwrite:
-        for p in (a.out, val_path(a.out)):
-            if os.path.exists(p):
-                raise ValueError(f'{p} exists; pass --overwrite to replace it')
+    collect.check_output(a.out, a.overwrite)  # before minutes of collection, not after
     cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
                                 batch=a.batch, seed=a.seed).resolved()
     import jax  # pylint: disable=import-outside-toplevel

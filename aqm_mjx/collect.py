@@ -147,26 +147,14 @@ def cells_at_bfs_distance(grid, k: int = STITCH_CELLS) -> tuple[np.ndarray, np.n
         1 and the only entry is the start cell (OGBench's fallback).
     """
     g = np.asarray(grid)
-    h, w = g.shape
-    free = free_cells(g)
+    w = g.shape[1]
+    steps = mazes.bfs_steps(g)
     found = []
-    for i0, j0 in free:
-        dist = -np.ones((h, w), np.int64)
-        dist[i0, j0] = 0
-        frontier, ring = [(i0, j0)], []
-        for _ in range(k):
-            nxt = []
-            for i, j in frontier:
-                for di, dj in ((-1, 0), (0, -1), (1, 0), (0, 1)):
-                    ni, nj = i + di, j + dj
-                    if 0 <= ni < h and 0 <= nj < w and g[ni, nj] == 0 and dist[ni, nj] < 0:
-                        dist[ni, nj] = dist[i, j] + 1
-                        nxt.append((ni, nj))
-            frontier = nxt
-        ring = frontier or [(i0, j0)]
-        found.append(ring)
+    for i0, j0 in free_cells(g):
+        ring = [divmod(int(c), w) for c in np.flatnonzero(steps[i0 * w + j0] == k)]
+        found.append(ring or [(int(i0), int(j0))])
     width = max(len(r) for r in found)
-    cells = np.zeros((len(free), width, 2), np.int32)
+    cells = np.zeros((len(found), width, 2), np.int32)
     for n, ring in enumerate(found):
         cells[n] = np.asarray(ring + [ring[0]] * (width - len(ring)), np.int32)
     return cells, np.asarray([len(r) for r in found], np.int32)
@@ -266,8 +254,7 @@ class CollectResult:
     stats: dict
 
 
-def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool = True,
-            on_chunk: Optional[Callable[[int, int], None]] = None) -> CollectResult:
+def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool = True) -> CollectResult:
     """Collect ``cfg.episodes`` training and ``cfg.episodes // 10`` validation episodes.
 
     Episodes run ``cfg.batch`` at a time in one jitted, vmapped call (time under ``lax.scan``);
@@ -296,15 +283,13 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     chunks = range(0, total, batch)
     bar = _progress(len(chunks), f'collect {cfg.env} {cfg.style}', progress)
     t0 = time.perf_counter()
-    compile_s = None
-    for c, first in enumerate(chunks):
+    first_chunk_s = None  # the first call compiles, then runs one chunk
+    for first in chunks:
         ids = jnp.arange(first, first + batch)
         keys = jax.vmap(lambda e: jax.random.fold_in(base, e))(ids)
-        ts = time.perf_counter()
         out = jax.device_get(run(keys))
-        if compile_s is None:
-            compile_s = time.perf_counter() - ts  # first call: compile + one chunk
-            first_chunk_s = compile_s
+        if first_chunk_s is None:
+            first_chunk_s = time.perf_counter() - t0
         m = min(batch, total - first)
         rows = slice(first * t, (first + m) * t)
         for k in buf:
@@ -314,8 +299,6 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
         if bar is not None:
             bar.update(1)
             bar.set_postfix(transitions=(first + m) * t)
-        if on_chunk is not None:
-            on_chunk(c, len(chunks))
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - t0
@@ -336,8 +319,9 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     return CollectResult(train=train, val=val, config=cfg, stats=stats)
 
 
-def write(result: CollectResult, path: str, overwrite: bool = False) -> tuple[str, str]:
-    """Write ``path`` and its ``-val`` twin (atomically; existing files are kept unless ``overwrite``)."""
+def check_output(path: str, overwrite: bool = False) -> str:
+    """Check an output path before any work: an ``.npz`` whose file and ``-val`` twin do not exist
+    (unless ``overwrite``). Returns the ``-val`` path."""
     if not path.endswith('.npz'):
         raise ValueError(f'output file must end in .npz (OGBench layout); got {path!r}')
     vpath = ds_io.val_path(path)
@@ -345,6 +329,12 @@ def write(result: CollectResult, path: str, overwrite: bool = False) -> tuple[st
         for p in (path, vpath):
             if os.path.exists(p):
                 raise FileExistsError(f'{p} exists; pass overwrite=True (--overwrite) to replace it')
+    return vpath
+
+
+def write(result: CollectResult, path: str, overwrite: bool = False) -> tuple[str, str]:
+    """Write ``path`` and its ``-val`` twin (atomically; existing files are kept unless ``overwrite``)."""
+    vpath = check_output(path, overwrite)
     ds_io.write_ogbench(path, result.train)
     if result.config.val_episodes:
         ds_io.write_ogbench(vpath, result.val)

@@ -81,25 +81,13 @@ def bfs_next_cell(grid) -> np.ndarray:
     h, w = g.shape
     n = h * w
     table = np.tile(np.arange(n, dtype=np.int32)[:, None], (1, n))
-    moves = ((-1, 0), (0, -1), (1, 0), (0, 1))
+    steps = mazes.bfs_steps(g)  # symmetric: the distance to the goal is the distance from it
     for goal in np.flatnonzero(g.reshape(-1) == 0):
-        dist = np.full(n, -1)
-        dist[goal] = 0
-        frontier = [goal]
-        while frontier:
-            nxt = []
-            for cell in frontier:
-                i, j = divmod(int(cell), w)
-                for di, dj in moves:
-                    ni, nj = i + di, j + dj
-                    if 0 <= ni < h and 0 <= nj < w and g[ni, nj] == 0 and dist[ni * w + nj] < 0:
-                        dist[ni * w + nj] = dist[cell] + 1
-                        nxt.append(ni * w + nj)
-            frontier = nxt
+        dist = steps[goal]
         for cell in np.flatnonzero(dist > 0):
             i, j = divmod(int(cell), w)
             best = cell
-            for di, dj in moves:
+            for di, dj in mazes.NEIGHBOURS:
                 ni, nj = i + di, j + dj
                 if 0 <= ni < h and 0 <= nj < w and 0 <= dist[ni * w + nj] < dist[best]:
                     best = ni * w + nj
