@@ -1,7 +1,7 @@
-"""Command line: ``aqm-mjx {run,render,envs}``.
+"""Command line: ``aqm-mjx {run,collect,train,evaluate,rollouts,render,envs}``.
 
-The pipeline stages (collect -> train -> keypoints -> evaluate) are being built issue by issue;
-``run`` does what exists today and says so.
+``run`` is the whole pipeline (collect -> train -> keypoints -> evaluate); the other commands are
+its stages, or tools.
 """
 
 from __future__ import annotations
@@ -86,8 +86,8 @@ def cmd_render(a):
     return 0
 
 
-def cmd_run(a):
-    """Roll a batch of episodes in MJX and draw them (today's main job; later stages to come)."""
+def cmd_rollouts(a):
+    """Roll a batch of random-action episodes in MJX and draw them (the environments alone)."""
     _enable_compile_cache()
     import jax  # pylint: disable=import-outside-toplevel
     import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
@@ -100,8 +100,6 @@ def cmd_run(a):
     os.makedirs(a.out, exist_ok=True)
     env = envs.make(a.env)
     print(f'{env}\ndevice: {jax.devices()[0]}; {a.envs} environments x {a.steps} control steps (random actions)')
-    print('note: this run exercises the MJX environments only; `aqm-mjx collect` and `aqm-mjx train` make '
-          'datasets and models; the whole pipeline as one run is not built yet.')
     n_tasks = env.num_tasks
     keys = jax.random.split(jax.random.PRNGKey(a.seed), a.envs)
     task_ids = jnp.arange(a.envs) % n_tasks + 1
@@ -204,16 +202,95 @@ def cmd_train(a):
     return 0
 
 
+def _run_config(a):
+    from aqm_mjx import evaluate, pipeline, train  # pylint: disable=import-outside-toplevel
+
+    tcfg = train.TrainConfig.preset(a.preset, env=a.env, seed=a.seed).with_overrides(a.set or [])
+    ecfg = evaluate.EvalConfig(episodes=a.eval_episodes, envs=a.envs, delta=a.delta, seed=a.seed)
+    return pipeline.RunConfig(train=tcfg, eval=ecfg)
+
+
+def cmd_run(a):
+    """The whole pipeline: data -> train -> keypoints -> evaluate (step by step, or as one program)."""
+    _enable_compile_cache()
+    import jax  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx import dataset, envs, pipeline  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.checkpoint import write_json  # pylint: disable=import-outside-toplevel
+
+    envs.parse_name(a.env)
+    cfg = _run_config(a)
+    out = a.out or os.path.join('runs', a.env)
+    print(f'aqm-mjx run: {a.env}, {cfg.train.preset} preset ({cfg.train.steps} updates of batch '
+          f'{cfg.train.batch_size}), {cfg.eval.episodes} evaluation episodes per task, on {jax.devices()[0]}; '
+          f'output in {out}')
+    if not a.one_program:
+        pipeline.run_stepwise(cfg, a.env, out, dataset=a.dataset, episodes=a.episodes, collect_batch=a.collect_batch,
+                              seed=a.seed, shift=a.shift)
+        return 0
+    if a.shift != 'base':
+        raise ValueError('--one-program evaluates the base layout; drop --shift')
+    path = pipeline.data_stage(a.env, out, a.dataset, a.episodes, a.collect_batch)
+    env = envs.make(a.env)
+    data = dataset.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
+    res = pipeline.run_one_program(cfg, a.env, data, a.seeds, a.seed)
+    os.makedirs(out, exist_ok=True)
+    write_json(os.path.join(out, 'one_program.json'), res)
+    print(f'wrote {out}/one_program.json')
+    return 0
+
+
+def cmd_evaluate(a):
+    """OGBench's protocol for a trained model, with ablations and test-time shifts in one batch."""
+    if a.distributed:
+        import jax  # pylint: disable=import-outside-toplevel
+
+        jax.distributed.initialize()  # before any other JAX call: every host runs this same command
+    _enable_compile_cache()
+    from aqm_mjx import evaluate  # pylint: disable=import-outside-toplevel
+
+    cfg = evaluate.EvalConfig(episodes=a.episodes, tasks=tuple(a.tasks or ()), steps=a.steps, envs=a.envs,
+                              kappa=a.kappa, ablations=tuple(a.ablations), delta=a.delta, tau=a.tau,
+                              switch_radius=a.switch_radius, max_keypoints=a.max_keypoints, candidates=a.candidates,
+                              selector=a.selector, seed=a.seed)
+    evaluate.run_cli(a.checkpoint, cfg, dataset=a.dataset, shift=a.shift, out=a.out)
+    return 0
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog='aqm-mjx', description='Adaptive Quasimetric Mapping on MuJoCo MJX.')
     sub = p.add_subparsers(dest='cmd', required=True)
-    r = sub.add_parser('run', help='the main job (today: batched MJX rollouts and a picture)')
+    r = sub.add_parser(
+        'run', help='the whole pipeline: collect (or --dataset) -> train -> keypoints -> evaluate',
+        description='Collect a navigate dataset in MJX (or use --dataset), train the quasimetric and policies, '
+                    'select keypoints, and evaluate AQM and its ablations with OGBench\'s protocol. Each stage '
+                    'shows its progress; training checkpoints, so re-running the same command after an interrupt '
+                    'resumes. Writes OUT/summary.json and OUT/eval/*.png. --one-program runs training, keypoints '
+                    'and evaluation as one jitted program, vmapped over --seeds.')
     r.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
-    r.add_argument('--envs', type=int, default=16, help='parallel environments')
-    r.add_argument('--steps', type=int, default=100, help='control steps per environment')
-    r.add_argument('--seed', type=int, default=0, help='random seed')
-    r.add_argument('--out', default='runs/default', help='output folder (picture and summary.json)')
+    r.add_argument('--out', default=None, help='run folder (default runs/ENV)')
+    r.add_argument('--dataset', default=None, help='an OGBench-format .npz to train on instead of collecting')
+    r.add_argument('--episodes', type=int, default=100, help='navigate episodes to collect (1001 states each)')
+    r.add_argument('--collect-batch', type=int, default=64, help='episodes collected side by side')
+    r.add_argument('--preset', default='cpu', choices=['cpu', 'paper', 'tiny'],
+                   help='training scale: cpu (minutes on a 2-core CPU), paper (Appendix 10; for a GPU), tiny')
+    r.add_argument('--set', action='append', metavar='KEY=VALUE', help='override a training config field')
+    r.add_argument('--eval-episodes', type=int, default=4, help='evaluation episodes per task (OGBench: 50)')
+    r.add_argument('--envs', type=int, default=64, help='environments per jitted evaluation call')
+    r.add_argument('--delta', type=float, default=15.0, help='IWE repel radius (quasimetric units)')
+    r.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
+    r.add_argument('--seed', type=int, default=0)
+    r.add_argument('--one-program', action='store_true',
+                   help='train, select keypoints and evaluate as one jitted program (no checkpoints)')
+    r.add_argument('--seeds', type=int, default=1, help='with --one-program: seeds vmapped in the one program')
     r.set_defaults(fn=cmd_run)
+    o = sub.add_parser('rollouts', help='random-action MJX rollouts and a picture (the environments alone)')
+    o.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
+    o.add_argument('--envs', type=int, default=16, help='parallel environments')
+    o.add_argument('--steps', type=int, default=100, help='control steps per environment')
+    o.add_argument('--seed', type=int, default=0, help='random seed')
+    o.add_argument('--out', default='runs/rollouts', help='output folder (picture and summary.json)')
+    o.set_defaults(fn=cmd_rollouts)
     e = sub.add_parser('envs', help='list the environments and their evaluation tasks')
     e.set_defaults(fn=cmd_envs)
     d = sub.add_parser('render', help='draw a maze with its evaluation tasks (or keypoint maps) as a PNG')
@@ -265,10 +342,38 @@ def main(argv=None):
     t.add_argument('--resume', action='store_true',
                    help='continue the run in --out from its newest readable checkpoint (its saved config is used)')
     t.set_defaults(fn=cmd_train)
+    v = sub.add_parser(
+        'evaluate', help='evaluate a trained model: OGBench protocol, ablations and shifts in one batch',
+        description='OGBench protocol: every task, --episodes each, deterministic actions clipped to [-1, 1], '
+                    'success at the last step. The AQM agent, its ablations and every shifted layout run as rows '
+                    'of one batch, --envs environments per jitted call, sharded over all devices. Writes '
+                    'OUT/results.json, success.png, trajectories.png and, with several layouts, heatmap.png.')
+    v.add_argument('--checkpoint', required=True, help='run folder written by `aqm-mjx train`')
+    v.add_argument('--dataset', default=None, help='states to select keypoints from (default: the training dataset)')
+    v.add_argument('--envs', type=int, default=1024, help='environments per jitted call (GPU: thousands)')
+    v.add_argument('--episodes', type=int, default=50, help='episodes per task, agent and layout (OGBench: 50)')
+    v.add_argument('--tasks', type=int, nargs='*', default=None, help='task ids (default: all five)')
+    v.add_argument('--steps', type=int, default=0, help='control steps per episode (default: the env limit, 1000)')
+    v.add_argument('--shift', default='base',
+                   help="layout: 'base', 'all' (the maze's shift suite), or one variant such as close-3-3")
+    v.add_argument('--kappa', type=float, default=0.25, help='budget slack of the AQM agent')
+    v.add_argument('--ablations', nargs='*', default=['no-pruning', 'flat'],
+                   help="extra agents in the same batch: no-pruning, flat, kappa=X (none: pass the flag empty)")
+    v.add_argument('--delta', type=float, default=15.0, help='IWE repel radius (quasimetric units)')
+    v.add_argument('--tau', type=float, default=0.0, help='edge and attachment radius (default 2 delta)')
+    v.add_argument('--switch-radius', type=float, default=5.0, help='d(s, z) at which a keypoint counts as reached')
+    v.add_argument('--max-keypoints', type=int, default=256)
+    v.add_argument('--candidates', type=int, default=10_000, help='dataset states encoded as IWE candidates')
+    v.add_argument('--selector', default='iwe', choices=['iwe', 'fps', 'random'])
+    v.add_argument('--seed', type=int, default=0)
+    v.add_argument('--out', default=None, help='output folder (default CHECKPOINT/eval)')
+    v.add_argument('--distributed', action='store_true',
+                   help='multi-host: call jax.distributed.initialize() first (run the same command on every host)')
+    v.set_defaults(fn=cmd_evaluate)
     a = p.parse_args(argv)
     try:
         return a.fn(a)
-    except (ValueError, TypeError, FileExistsError, RuntimeError) as err:
+    except (ValueError, TypeError, FileExistsError, FileNotFoundError, RuntimeError) as err:
         print(f'aqm-mjx: error: {err}', file=sys.stderr)
         return 2
 

@@ -11,8 +11,27 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from flax import struct
 
+from aqm_mjx import keypoints as kp_select
 from aqm_mjx.keypoints import Dist, Keypoints
+
+
+@struct.dataclass
+class Graph:
+    """The keypoint graph an agent plans on.
+
+    Attributes:
+        z: ``[K, L]`` keypoints as inputs of the quasimetric (latents).
+        obs: ``[K, D]`` keypoint observations (what the controller is given as a subgoal).
+        mask: bool ``[K]`` valid keypoints.
+        w: ``[K, K]`` edge weights (``inf``: no edge).
+    """
+
+    z: jax.Array
+    obs: jax.Array
+    mask: jax.Array
+    w: jax.Array
 
 
 def pairwise(dist: Dist, a: jax.Array, b: jax.Array) -> jax.Array:
@@ -82,3 +101,49 @@ def edge_list(weights, mask=None):
         m = np.asarray(mask)
         e &= m[:, None] & m[None, :]
     return np.argwhere(e)
+
+
+SELECTORS = ('iwe', 'fps', 'random')
+
+
+def keypoint_graph(dist: Dist, latents: jax.Array, observations: jax.Array, key: jax.Array, delta: float,
+                   max_keypoints: int, tau: float | None = None, selector: str = 'iwe',
+                   valid: jax.Array | None = None) -> tuple[Graph, Keypoints]:
+    """Select keypoints among encoded dataset states and join them (one pure, jittable stage).
+
+    Args:
+        dist: pairwise latent quasimetric.
+        latents: ``[N, L]`` encoded candidate states; observations: ``[N, D]`` the same states.
+        key: PRNG key of the selector.
+        delta: repel radius (IWE, FPS); tau: edge radius (``2 delta`` when None).
+        max_keypoints: static K (``random`` selects exactly K).
+        selector: ``'iwe'`` (Algorithm 2), ``'fps'`` (farthest point) or ``'random'`` (uniform).
+        valid: optional bool ``[N]`` real candidates.
+    Returns:
+        (:class:`Graph` with ``[K, ...]`` arrays, invalid rows zero and their edges ``inf``;
+        the :class:`~aqm_mjx.keypoints.Keypoints` selected).
+    """
+    if selector == 'iwe':
+        kp = kp_select.iwe(dist, latents, key, delta, max_keypoints, valid)
+    elif selector == 'fps':
+        kp = kp_select.farthest_point(dist, latents, key, delta, max_keypoints, valid)
+    elif selector == 'random':
+        kp = kp_select.uniform_random(latents, key, max_keypoints, valid)
+    else:
+        raise ValueError(f'unknown keypoint selector {selector!r}; expected one of {", ".join(SELECTORS)}')
+    idx = jnp.maximum(kp.index, 0)
+    keep = kp.mask[:, None]
+    z = jnp.where(keep, latents[idx], 0.0)
+    obs = jnp.where(keep, observations[idx], 0.0)
+    w = build_graph(dist, z, kp.mask, delta, tau=tau)
+    return Graph(z=z, obs=obs, mask=kp.mask, w=w), kp
+
+
+def trim(graph: Graph, size: int) -> Graph:
+    """The first ``size`` keypoint slots of a graph (host side, outside jit): selectors fill slots
+    in order, so trimming a padded ``[K, ...]`` graph to its count (rounded up to a multiple of 8,
+    say) keeps every keypoint and makes Floyd-Warshall ``(K / size)^3`` times cheaper."""
+    count = int(jnp.sum(graph.mask))
+    if not count <= size <= graph.mask.shape[0] or bool(jnp.any(graph.mask[size:])):
+        raise ValueError(f'cannot trim a graph with {count} keypoints (valid slots not first?) to {size} slots')
+    return Graph(z=graph.z[:size], obs=graph.obs[:size], mask=graph.mask[:size], w=graph.w[:size, :size])

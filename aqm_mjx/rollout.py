@@ -30,6 +30,9 @@ import jax.numpy as jnp
 from flax import struct
 
 from aqm_mjx import plan as planning
+from aqm_mjx.graph import Graph
+
+MAX_CUTS = 16  # pruned edges remembered per environment for plots (all are counted in ``pruned``)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,29 +43,15 @@ class AgentConfig:
     switch_radius: float = 5.0  # a keypoint is reached when d(s, z) <= switch_radius
     tau: float = 20.0  # attachment radius of the start and the goal (the graph's tau)
     use_graph: bool = True  # False: the flat policy, aimed at the goal all the time
+    replan_slots: int = 8  # pruning environments replanned per Floyd-Warshall pass (speed only; GPU: more)
 
     def __post_init__(self):
         if not (self.kappa >= 0):
             raise ValueError(f'kappa must be >= 0 (inf disables pruning); got {self.kappa}')
         if not (self.switch_radius > 0 and self.tau > 0):
             raise ValueError('switch_radius and tau must be > 0')
-
-
-@struct.dataclass
-class Graph:
-    """The keypoint graph an agent plans on.
-
-    Attributes:
-        z: ``[K, L]`` keypoints as inputs of the quasimetric (latents).
-        obs: ``[K, D]`` keypoint observations (what the controller is given as a subgoal).
-        mask: bool ``[K]`` valid keypoints.
-        w: ``[K, K]`` edge weights (``inf``: no edge).
-    """
-
-    z: jax.Array
-    obs: jax.Array
-    mask: jax.Array
-    w: jax.Array
+        if int(self.replan_slots) < 1:
+            raise ValueError(f'replan_slots must be >= 1; got {self.replan_slots}')
 
 
 @struct.dataclass
@@ -78,6 +67,7 @@ class AgentState:
     t_edge: jax.Array  # int32 steps spent on the current leg
     budget: jax.Array  # float32 steps allowed on the current edge (inf: none)
     pruned: jax.Array  # int32 edges pruned so far
+    cuts: jax.Array  # int32 [MAX_CUTS, 2] the first MAX_CUTS pruned edges (i, j), -1 padded (for plots)
     needs_replan: jax.Array  # bool: w changed this step
 
 
@@ -90,7 +80,7 @@ def agent_init(dist: Callable, graph: Graph, cfg: AgentConfig, s: jax.Array, g: 
     node = jnp.where(use_graph, p.first, -1).astype(jnp.int32)
     return AgentState(w=graph.w, dist=d_kk, nxt=nxt.astype(jnp.int32), to_g=to_g, node=node,
                       prev=jnp.int32(-1), t_edge=jnp.int32(0), budget=jnp.float32(jnp.inf),
-                      pruned=jnp.int32(0), needs_replan=jnp.bool_(False))
+                      pruned=jnp.int32(0), cuts=jnp.full((MAX_CUTS, 2), -1, jnp.int32), needs_replan=jnp.bool_(False))
 
 
 def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -119,9 +109,11 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     overrun = ~reached & (a.prev >= 0) & (a.node >= 0) & (t > a.budget)
     i, j = jnp.maximum(a.prev, 0), k
     w = jnp.where(overrun, a.w.at[i, j].set(jnp.inf), a.w)
+    slot = jnp.where(overrun & (a.pruned < MAX_CUTS), a.pruned, MAX_CUTS)  # out of range: dropped
+    cuts = a.cuts.at[slot].set(jnp.stack([i, j]).astype(jnp.int32), mode='drop')
     node = jnp.where(reached, hop, jnp.where(overrun, a.prev, a.node)).astype(jnp.int32)
     prev = jnp.where(reached, jnp.where(hop >= 0, k, -1), jnp.where(overrun, -1, a.prev)).astype(jnp.int32)
-    return a.replace(w=w, node=node, prev=prev, t_edge=jnp.where(reached | overrun, 0, t).astype(jnp.int32),
+    return a.replace(w=w, cuts=cuts, node=node, prev=prev, t_edge=jnp.where(reached | overrun, 0, t).astype(jnp.int32),
                      budget=jnp.where(reached, budget, jnp.where(overrun, jnp.inf, a.budget)).astype(jnp.float32),
                      pruned=a.pruned + overrun.astype(jnp.int32), needs_replan=overrun)
 
@@ -137,19 +129,31 @@ def redirect(a: AgentState, kappa: jax.Array) -> AgentState:
                      budget=jnp.where(go, budget, a.budget).astype(jnp.float32), t_edge=jnp.where(go, 0, a.t_edge))
 
 
-def replan(a: AgentState) -> AgentState:
-    """Recompute distances and next hops of a batch of agents, only if one of them pruned an edge
-    (a real conditional outside ``vmap``: replanning costs nothing on steps without overruns)."""
+def replan(a: AgentState, slots: int = 8) -> AgentState:
+    """Recompute distances and next hops of the agents of a batch that pruned an edge this step.
 
-    def fw(w):
-        d, n = planning.floyd_warshall_batch(w)
-        return d, n.astype(jnp.int32)
+    The cost follows the number of pruning environments, not the batch: a ``lax.while_loop`` takes
+    up to ``slots`` of them per pass (gathered by index), runs Floyd-Warshall on those and writes
+    the results back; a step without overruns costs one test. Results do not depend on ``slots``.
+    """
+    b = a.w.shape[0]
+    slots = max(1, min(int(slots), b))
 
-    d, n = jax.lax.cond(jnp.any(a.needs_replan), fw, lambda w: (a.dist, a.nxt), a.w)
+    def one_pass(c):
+        d, n, pending = c
+        idx = jnp.nonzero(pending, size=slots, fill_value=b)[0]  # b: an empty slot (dropped on write)
+        src = jnp.minimum(idx, b - 1)
+        dd, nn = planning.floyd_warshall_batch(a.w[src], chunk=slots)
+        d = d.at[idx].set(dd, mode='drop')
+        n = n.at[idx].set(nn.astype(jnp.int32), mode='drop')
+        return d, n, pending.at[idx].set(False, mode='drop')
+
+    d, n, _ = jax.lax.while_loop(lambda c: jnp.any(c[2]), one_pass, (a.dist, a.nxt, a.needs_replan))
     return a.replace(dist=d, nxt=n)
 
 
-def make_evaluate(env, encode: Callable, dist: Callable, controller: Callable, cfg: AgentConfig, steps: int):
+def make_evaluate(env, encode: Callable, dist: Callable, controller: Callable, cfg: AgentConfig, steps: int,
+                  record_actions: bool = False):
     """Build the jittable evaluation program.
 
     Args:
@@ -158,6 +162,7 @@ def make_evaluate(env, encode: Callable, dist: Callable, controller: Callable, c
         dist: ``(aux, latent, latent) -> scalar`` time-to-reach.
         controller: ``(aux, obs [D], subgoal_obs [D], t, key) -> action [A]``.
         cfg: agent rules; steps: control steps per episode.
+        record_actions: also return the clipped actions ``[T, B, A]`` (benchmarks replay them).
     Returns:
         ``run(aux, graph, keys [B, 2, 2], task_ids [B], grids [B, H, W], kappa [B], use_graph [B])
         -> dict`` with ``success [B]`` (success at the last step), ``pruned [B]``, ``xy [T, B, 2]``
@@ -178,17 +183,22 @@ def make_evaluate(env, encode: Callable, dist: Callable, controller: Callable, c
             states, agents = carry
             # PLAN: switch, time and prune per environment, then replan where an edge was cut
             agents = jax.vmap(lambda a, s, kp: agent_step(d, graph, cfg, a, s, kp))(agents, enc(states.obs), kappa)
-            agents = replan(agents)
+            agents = replan(agents, cfg.replan_slots)
             agents = jax.vmap(redirect)(agents, kappa)
             sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], states.goal)
             # ACT and STEP
             keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)
-            actions = jax.vmap(lambda o, g, k: controller(aux, o, g, t, k))(states.obs, sub, keys_t)
-            states = jax.vmap(env.step)(states, jnp.clip(actions, -1.0, 1.0))
-            return (states, agents), (states.data.qpos[:, :2], agents.node)
+            actions = jnp.clip(jax.vmap(lambda o, g, k: controller(aux, o, g, t, k))(states.obs, sub, keys_t), -1.0, 1.0)
+            states = jax.vmap(env.step)(states, actions)
+            trace = (states.data.qpos[:, :2], agents.node) + ((actions,) if record_actions else ())
+            return (states, agents), trace
 
-        (states, agents), (xy, node) = jax.lax.scan(body, (states, agents), jnp.arange(steps))
-        return dict(success=states.success, pruned=agents.pruned, xy=xy, node=node, goal_xy=states.goal_xy)
+        (states, agents), trace = jax.lax.scan(body, (states, agents), jnp.arange(steps))
+        out = dict(success=states.success, pruned=agents.pruned, cuts=agents.cuts, xy=trace[0], node=trace[1],
+                   goal_xy=states.goal_xy)
+        if record_actions:
+            out['actions'] = trace[2]
+        return out
 
     return run
 

@@ -75,3 +75,21 @@ def grid_walks(grid: dict, episodes: int = 400, steps: int = 40, seed: int = 0) 
     o = obs.reshape(-1, 2)
     return dict(observations=o, actions=act.reshape(-1, 2), terminals=term.reshape(-1),
                 cells=(o[:, 0] * n + o[:, 1]).astype(np.int64))
+
+
+def point_walks(maze: str = 'medium', n_traj: int = 40, t_len: int = 50, step: float = 0.2, seed: int = 0) -> dict:
+    """Gaussian random walks of a point from random free cells of ``maze``, in OGBench's layout for
+    ``pointmaze-MAZE`` (states: the point's x-y; the action is the next displacement over
+    ``2 * step``, clipped to [-1, 1]). They ignore walls: enough to exercise training, mapping and
+    evaluation end to end in seconds, not to learn a skill."""
+    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
+
+    rng = np.random.default_rng(seed)
+    free = mazes.ij_to_xy(np.argwhere(mazes.layout(maze) == 0))
+    xy = free[rng.integers(len(free), size=n_traj)][:, None] + np.cumsum(rng.normal(0, step, (n_traj, t_len, 2)), 1)
+    obs = xy.reshape(-1, 2).astype(np.float32)
+    term = np.zeros((n_traj, t_len), np.float32)
+    term[:, -1] = 1
+    act = np.zeros_like(xy)
+    act[:, :-1] = np.clip(np.diff(xy, axis=1) / (2 * step), -1, 1)
+    return dict(observations=obs, actions=act.reshape(-1, 2).astype(np.float32), terminals=term.reshape(-1))

@@ -317,7 +317,8 @@ def _trim_metrics(path: str, step: int) -> None:
 
 
 def train(cfg: Optional[TrainConfig], data: dict, out: str, resume: bool = False, steps: Optional[int] = None,
-          dataset_path: Optional[str] = None, progress: bool = True, log=print) -> TrainState:
+          dataset_path: Optional[str] = None, progress: bool = True, log=print,
+          key: Optional[jax.Array] = None) -> TrainState:
     """Train (or resume) a run in folder ``out``.
 
     Args:
@@ -326,6 +327,8 @@ def train(cfg: Optional[TrainConfig], data: dict, out: str, resume: bool = False
         out: run folder (``config.json``, ``metrics.jsonl``, ``checkpoints/``).
         resume: continue from the newest readable checkpoint in ``out``.
         steps: override the total number of updates.
+        key: the initialisation key (default ``PRNGKey(cfg.seed)``; :mod:`aqm_mjx.pipeline` passes
+            its train key so that both paths of a run start alike). Ignored on resume.
     Returns:
         The final TrainState.
     """
@@ -349,7 +352,7 @@ def train(cfg: Optional[TrainConfig], data: dict, out: str, resume: bool = False
     learner = make_learner(cfg, obs_size, action_size)
     meta = _meta(cfg, obs_size, action_size, dataset_path)
     saver = ckpt.Checkpointer(out, keep=cfg.keep)
-    state = learner.init(jax.random.PRNGKey(cfg.seed))
+    state = learner.init(jax.random.PRNGKey(cfg.seed) if key is None else key)
     if resume:
         step, state, _ = saver.restore(state, log=log)
         log(f'resumed {out} at step {step}')

@@ -102,3 +102,22 @@ def test_pruning_reroutes_the_ant_around_a_closed_corridor():
     out, *_ = _scenario('ant', 20, 1000, kappas)
     rates = _check(out, 20, kappas)
     print('ant, closed corridor, 20 episodes each:', rates, 'edges pruned (kappa 0.25):', out['pruned'][:20].tolist())
+
+
+def test_replan_touches_only_pruning_agents_and_ignores_the_slot_count():
+    rng = np.random.default_rng(0)
+    b, k = 13, 12
+    w = np.where(rng.random((b, k, k)) < 0.3, rng.uniform(1, 10, (b, k, k)), np.inf).astype(np.float32)
+    g = rollout.Graph(z=jnp.zeros((k, 1)), obs=jnp.zeros((k, 2)), mask=jnp.ones(k, bool), w=jnp.asarray(w[0]))
+    cfg = rollout.AgentConfig()
+    dist = lambda x, y: jnp.abs(x[0] - y[0])  # noqa: E731
+    a = jax.vmap(lambda _: rollout.agent_init(dist, g, cfg, jnp.zeros(1), jnp.zeros(1)))(jnp.arange(b))
+    need = rng.random(b) < 0.5
+    a = a.replace(w=jnp.asarray(w), needs_replan=jnp.asarray(need))
+    want_d, want_n = plan.floyd_warshall_batch(jnp.asarray(w))
+    outs = [rollout.replan(a, slots) for slots in (1, 4, 8, b)]
+    for o in outs:
+        np.testing.assert_array_equal(o.dist[need], want_d[need])  # pruning agents: their new shortest paths
+        np.testing.assert_array_equal(o.nxt[need], want_n[need])
+        np.testing.assert_array_equal(o.dist[~need], a.dist[~need])  # the others: untouched
+        np.testing.assert_array_equal(o.dist, outs[0].dist)

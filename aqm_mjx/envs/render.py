@@ -132,7 +132,8 @@ def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, n
 
     Args:
         grid: ``[H, W]`` occupancy grid shared by the panels.
-        panels: one dict of :func:`draw_maze` keyword arguments per panel (``title`` included).
+        panels: one dict of :func:`draw_maze` keyword arguments per panel (``title`` included; a
+            ``grid`` entry replaces the shared grid in that panel, e.g. a shifted layout).
         path: PNG to write (the figure is then closed).
     """
     plt = _plt()
@@ -143,7 +144,8 @@ def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, n
     fig, axes = plt.subplots(nrows, ncols, figsize=(ncols * (0.45 * w + 1.0), nrows * (0.45 * h + 1.0)), dpi=dpi,
                              squeeze=False)
     for ax, kw in zip(axes.ravel(), panels):
-        draw_maze(ax, grid, **kw)
+        kw = dict(kw)
+        draw_maze(ax, kw.pop('grid', grid), **kw)
     for ax in axes.ravel()[n:]:
         ax.axis('off')
     return _finish(plt, fig, path)

@@ -1,0 +1,80 @@
+"""Pictures of evaluation results: success per task, the shift heatmap (the paper's Figure 3) and
+trajectories over the maze with the keypoint graph, the path taken through it and the pruned edges."""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import numpy as np
+
+from aqm_mjx.envs import render
+
+
+def success_bars(summary: dict, variant: str, tasks: Sequence[int], path: Optional[str] = None, title: str = ''):
+    """Grouped bars: success rate per task (and the mean) for every agent, on one variant."""
+    plt = render._plt()  # pylint: disable=protected-access
+    agents = list(summary)
+    cols = [f'task_{t}' for t in tasks] + ['mean']
+    fig, ax = plt.subplots(figsize=(1.2 * len(cols) + 2.5, 3.2), dpi=100)
+    width = 0.8 / len(agents)
+    for k, a in enumerate(agents):
+        vals = [100 * summary[a][variant][c] for c in cols]
+        x = np.arange(len(cols)) + (k - (len(agents) - 1) / 2) * width
+        bars = ax.bar(x, vals, width, label=a)
+        for b, v in zip(bars, vals):
+            ax.text(b.get_x() + b.get_width() / 2, v + 1, f'{v:.0f}', ha='center', fontsize=7)
+    ax.set_xticks(np.arange(len(cols)), [c.replace('_', ' ') for c in cols])
+    ax.set_ylim(0, 110)
+    ax.set_ylabel('success (%)')
+    ax.set_title(title or f'success per task ({variant})')
+    ax.legend(fontsize=8, frameon=False, loc='upper left', bbox_to_anchor=(1.0, 1.0))
+    return render._finish(plt, fig, path)  # pylint: disable=protected-access
+
+
+def heatmap(rows: Sequence[str], cols: Sequence[str], values: np.ndarray, path: Optional[str] = None,
+            title: str = '', xlabel: str = 'evaluation layout', ylabel: str = 'trained on / agent'):
+    """Success (%) as a heatmap, rows x columns (the paper's Figure 3 layout)."""
+    plt = render._plt()  # pylint: disable=protected-access
+    v = 100 * np.asarray(values, float)
+    fig, ax = plt.subplots(figsize=(1.1 * len(cols) + 2.5, 0.55 * len(rows) + 1.6), dpi=100)
+    im = ax.imshow(v, cmap='RdYlGn', vmin=0, vmax=100, aspect='auto')
+    for i in range(v.shape[0]):
+        for j in range(v.shape[1]):
+            ax.text(j, i, f'{v[i, j]:.0f}', ha='center', va='center', fontsize=8)
+    ax.set_xticks(np.arange(len(cols)), cols, rotation=30, ha='right')
+    ax.set_yticks(np.arange(len(rows)), rows)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    fig.colorbar(im, ax=ax, label='success (%)')
+    return render._finish(plt, fig, path)  # pylint: disable=protected-access
+
+
+def visited_path(node: np.ndarray) -> np.ndarray:
+    """The keypoints an episode aimed at, in order, without repeats: ``node [T]`` -> ``[P]``."""
+    node = np.asarray(node)
+    node = node[node >= 0]
+    if len(node) == 0:
+        return node
+    return node[np.r_[True, node[1:] != node[:-1]]]
+
+
+def trajectory_panels(base_grid, grids: dict, traces: dict, nodes_xy: np.ndarray, edges: np.ndarray,
+                      agent: str, task: int, path: Optional[str] = None):
+    """One panel per variant: ``agent``'s first episode of ``task``, with the graph, the keypoints it
+    aimed at (bold) and the edges it pruned (dashed red)."""
+    panels = []
+    for name, grid in grids.items():
+        tr = traces.get((agent, name, task))
+        if tr is None:
+            continue
+        xy = np.asarray(tr['xy'])
+        visited = visited_path(tr['node'])
+        cuts = np.asarray(tr['cuts']).reshape(-1, 2)
+        panels.append(dict(grid=grid, base_grid=base_grid, nodes_xy=nodes_xy, edges=edges, pruned_edges=cuts,
+                           path_xy=nodes_xy[visited] if len(visited) else None, trajectories=[xy],
+                           start_xy=xy[0], goal_xy=np.asarray(tr['goal_xy']),
+                           title=f'{name}: {"success" if tr["success"] else "fail"}, {tr["pruned"]} pruned'))
+    if not panels:
+        raise ValueError(f'no trajectory of agent {agent!r} on task {task} was kept')
+    return render.render_panels(base_grid, panels, path)

@@ -1,0 +1,198 @@
+"""The evaluation protocol: shift suites, the episode table, chunk- and device-invariance, the CLI."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from aqm_mjx import cli, envs, evaluate, expert, rollout, synthetic, train
+from aqm_mjx.envs import mazes, shifts
+
+
+# ------------------------------------------------------------------------------------------ shifts
+@pytest.mark.parametrize('maze', ['medium', 'large', 'giant'])
+def test_shift_suite_keeps_tasks_solvable_and_changes_routes(maze):
+    base = mazes.layout(maze)
+    ref = shifts.route_lengths(base, maze)
+    suite = shifts.suite(maze)
+    closes = [k for k in suite if k.startswith('close')]
+    opens = [k for k in suite if k.startswith('open')]
+    assert list(suite)[0] == 'base' and np.array_equal(suite['base'], base)
+    assert len(closes) >= 1 and len(opens) >= 1
+    for name in closes + opens:
+        g = suite[name]
+        _, i, j = name.split('-')
+        diff = np.argwhere(g != base)
+        assert diff.tolist() == [[int(i), int(j)]]  # exactly one cell changed, the one named
+        mazes.validate_grid(g, maze)
+        lengths = shifts.route_lengths(g, maze)
+        assert (lengths > 0).all()  # every task stays solvable: an alternative route exists
+        if name.startswith('close'):
+            assert base[int(i), int(j)] == 0 and (lengths >= ref).all() and (lengths > ref).any()
+            free = np.argwhere(g == 0)
+            assert (shifts.bfs_from(g, tuple(free[0])) >= 0).sum() == len(free)  # nothing cut off
+        else:
+            assert base[int(i), int(j)] == 1 and (lengths <= ref).all() and (lengths < ref).any()
+
+
+def test_medium_shift_by_hand():
+    # medium task 1 runs (1,1) -> (6,6) in 10 BFS steps; closing corridor cell (3, 3) forces a detour
+    assert shifts.route_lengths(mazes.layout('medium'), 'medium').tolist() == [10, 10, 6, 10, 8]
+    g = shifts.variant('medium', 'close-3-3')
+    assert g[3, 3] == 1 and shifts.route_lengths(g, 'medium')[0] > 10
+    with pytest.raises(ValueError, match="unknown shift 'close-1-1'.*its suite is: base, close-"):
+        shifts.variant('medium', 'close-1-1')  # a task's start cell
+    with pytest.raises(ValueError, match='teleport'):
+        shifts.suite('teleport')
+
+
+# ------------------------------------------------------------------------------------ the table
+def test_config_and_episode_table():
+    cfg = evaluate.EvalConfig(ablations=('no-pruning', 'flat', 'kappa=1'))
+    specs = evaluate.agent_specs(cfg)
+    assert [s[0] for s in specs] == ['aqm', 'no-pruning', 'flat', 'kappa=1']
+    assert specs[1][1] == np.inf and specs[2][2] is False and specs[3][1] == 1.0
+    t = evaluate.episode_table(specs, 2, [1, 3], 5)
+    assert len(t.task) == 4 * 2 * 2 * 5
+    # every agent gets the same episodes (same key ids), and (variant, task, episode) ids are distinct
+    ids = t.seed_id.reshape(4, -1)
+    assert (ids == ids[0]).all() and len(set(ids[0].tolist())) == 2 * 2 * 5
+    for bad, msg in ((dict(ablations=('greedy',)), 'unknown ablation'), (dict(ablations=('kappa=x',)), 'number'),
+                     (dict(episodes=0), 'episodes'), (dict(selector='kmeans'), 'selector'),
+                     (dict(ablations=('flat', 'flat')), 'repeat')):
+        with pytest.raises(ValueError, match=msg):
+            evaluate.EvalConfig(**bad)
+
+
+# --------------------------------------------------------------- the protocol without learning
+def exact_point_agent(base):
+    """The exact maze distance and a BFS-steering point controller (no learning)."""
+    env = envs.make('pointmaze-medium')
+    aux, graph = rollout.maze_graph(base, delta=4.0, speed=0.15, obs_size=env.obs_size)
+    aux['bfs'] = jnp.asarray(expert.bfs_next_cell(base))
+
+    def controller(aux, o, g, t, key):
+        cmd = expert.waypoint_command(o[:2], g[:2], aux['bfs'], base.shape)
+        return cmd / (jnp.linalg.norm(cmd) + 1e-6)
+
+    agent = evaluate.Agent(rollout.maze_encode, rollout.maze_dist, controller, aux)
+    cfg = evaluate.EvalConfig(episodes=2, tasks=(1, 4), steps=400, switch_radius=1.5 / 0.15, tau=8.0 / 0.15,
+                              ablations=('no-pruning', 'flat'))
+    return env, agent, graph, cfg
+
+
+def closed_5_3(base):
+    # task 4's shortest route runs through (5, 3); not in the suite because task 3 starts there
+    g = base.copy()
+    g[5, 3] = 1
+    return g
+
+
+def test_protocol_results_do_not_depend_on_chunking():
+    base = mazes.layout('medium')
+    env, agent, graph, cfg = exact_point_agent(base)
+    variants = {'base': base, 'close-5-3': closed_5_3(base)}
+    a = evaluate.evaluate(env, agent, graph, cfg.__class__(**{**cfg.__dict__, 'envs': 7}), variants, progress=False)
+    b = evaluate.evaluate(env, agent, graph, cfg.__class__(**{**cfg.__dict__, 'envs': 24}), variants, progress=False)
+    assert a.timing['chunks'] == 4 and b.timing['chunks'] == 1  # 3 agents x 2 layouts x 2 tasks x 2 = 24
+    np.testing.assert_array_equal(a.success, b.success)
+    np.testing.assert_array_equal(a.pruned, b.pruned)
+    # the summary is the per-episode mean, recomputed here
+    t = a.table
+    for ai, name in enumerate(a.agents):
+        for vi, v in enumerate(a.variants):
+            for task in (1, 4):
+                sel = (t.agent == ai) & (t.variant == vi) & (t.task == task)
+                assert a.summary[name][v][f'task_{task}'] == pytest.approx(a.success[sel].mean())
+    # the planner with the exact distance solves the open maze; only pruning agents prune
+    assert a.summary['aqm']['base']['mean'] == 1.0
+    assert a.pruned[t.kappa == np.inf].max() == 0
+    # task 4 with (5, 3) closed: the pruning agent reroutes, the non-pruning one does not get there
+    assert a.summary['aqm']['close-5-3']['task_4'] == 1.0 and a.summary['no-pruning']['close-5-3']['task_4'] == 0.0
+    tr = a.traces[('aqm', 'close-5-3', 4)]
+    assert tr['pruned'] >= 1 and len(tr['cuts']) == min(tr['pruned'], rollout.MAX_CUTS) and tr["xy"].shape == (400, 2)
+
+
+SHARD_SCRIPT = r'''
+import os, sys, json
+import jax, numpy as np
+sys.path.insert(0, os.path.dirname(sys.argv[1]))
+from test_evaluate import exact_point_agent, closed_5_3
+from aqm_mjx import evaluate
+from aqm_mjx.envs import mazes, shifts
+assert jax.device_count() == 2, jax.devices()
+base = mazes.layout('medium')
+env, agent, graph, cfg = exact_point_agent(base)
+variants = {'base': base, 'close-5-3': closed_5_3(base)}
+out = {}
+for n in (1, 2):
+    mesh = evaluate.device_mesh(jax.devices()[:n])
+    r = evaluate.evaluate(env, agent, graph, cfg, variants, mesh=mesh, progress=False)
+    xy = np.stack([r.traces[k]['xy'] for k in sorted(r.traces)])
+    out[n] = (r.success, r.pruned, xy, r.timing['devices'])
+assert out[1][3] == 1 and out[2][3] == 2
+for i in range(3):
+    assert np.array_equal(out[1][i], out[2][i]), i
+print('identical', int(out[1][0].sum()), out[1][2].shape)
+'''
+
+
+def test_sharding_over_two_devices_gives_bit_identical_results(tmp_path):
+    script = tmp_path / 'shard.py'
+    script.write_text(SHARD_SCRIPT)
+    env = dict(os.environ, XLA_FLAGS='--xla_force_host_platform_device_count=2', JAX_PLATFORMS='cpu')
+    p = subprocess.run([sys.executable, str(script), __file__], capture_output=True, text=True, env=env, timeout=900)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert 'identical' in p.stdout
+
+
+# ------------------------------------------------------------------------------ learned agent, CLI
+def tiny_point_run(tmp_path):
+    """A tiny model trained on random walks in pointmaze-medium (seconds): the wiring, not the skill."""
+    data = synthetic.point_walks()
+    obs = data['observations']
+    path = tmp_path / 'pointmaze-medium-navigate.npz'
+    np.savez(path, **data)
+    out = tmp_path / 'run'
+    assert cli.main(['train', '--dataset', str(path), '--preset', 'tiny', '--steps', '100', '--out', str(out)]) == 0
+    return out, path, obs
+
+
+def test_learned_agent_map_and_cli(tmp_path, capsys):
+    out, path, obs = tiny_point_run(tmp_path)
+    trained = train.load(str(out))
+    agent = evaluate.learned_agent(trained)
+    cfg = evaluate.EvalConfig(delta=1.0, max_keypoints=16, candidates=500)
+    graph, kp = evaluate.build_map(agent, jnp.asarray(obs), cfg, jax.random.PRNGKey(0))
+    k = int(kp.count)
+    assert 1 <= k <= 16 and int(graph.mask.sum()) == k
+    # keypoint observations are dataset states, their latents the encoder's
+    rows = np.asarray(graph.obs)[:k]
+    assert all(np.any(np.all(obs == r, axis=1)) for r in rows)
+    np.testing.assert_allclose(graph.z[:k], jax.vmap(lambda o: agent.encode(agent.aux, o))(graph.obs[:k]), atol=1e-5)
+    # the CLI: base plus the shift suite, every agent, one episode each, 60 steps
+    ev = tmp_path / 'eval'
+    argv = ['evaluate', '--checkpoint', str(out), '--episodes', '1', '--steps', '60', '--shift', 'all',
+            '--delta', '1', '--max-keypoints', '16', '--envs', '32', '--out', str(ev)]
+    assert cli.main(argv) == 0
+    res = json.loads((ev / 'results.json').read_text())
+    assert res['agents'] == ['aqm', 'no-pruning', 'flat'] and res['variants'][0] == 'base'
+    assert res['variants'] == list(shifts.suite('medium')) and 1 <= res['keypoints'] <= 16
+    assert res['timing']['chunks'] == -(-3 * len(res['variants']) * 5 // 32)
+    for png in ('success.png', 'trajectories.png', 'heatmap.png'):
+        assert (ev / png).read_bytes()[:4] == b'\x89PNG'
+    assert 'aqm / base' in capsys.readouterr().out
+    # clear errors
+    assert cli.main(['evaluate', '--checkpoint', str(out), '--shift', 'close-1-1', '--out', str(ev)]) == 2
+    assert "unknown shift 'close-1-1'" in capsys.readouterr().err
+    assert cli.main(['evaluate', '--checkpoint', str(out), '--dataset', str(tmp_path / 'nope.npz')]) == 2
+    assert 'not found' in capsys.readouterr().err
+    assert cli.main(['evaluate', '--checkpoint', str(tmp_path / 'none')]) == 2
+    assert 'no such file' in capsys.readouterr().err
+    assert cli.main(['evaluate', '--checkpoint', str(out), '--tasks', '9', '--out', str(ev)]) == 2
+    assert 'task ids [9]' in capsys.readouterr().err

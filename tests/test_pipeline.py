@@ -1,0 +1,79 @@
+"""The whole run as one jitted program equals the step-by-step path; seeds vmap in one compile."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from aqm_mjx import dataset as ds_io
+from aqm_mjx import envs, evaluate, pipeline, synthetic, train
+
+
+def assert_params_close(a, b):
+    """Float tolerance for Adam-trained parameters: Adam turns gradient noise near zero into steps of
+    the learning rate (1e-4 to 3e-4), so elementwise within a few steps, and close overall."""
+    la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
+    for x, y in zip(la, lb):
+        np.testing.assert_allclose(x, y, rtol=1e-3, atol=1e-3)
+    diff = np.sqrt(sum(float(np.sum((np.asarray(x) - np.asarray(y)) ** 2)) for x, y in zip(la, lb)))
+    norm = np.sqrt(sum(float(np.sum(np.asarray(y) ** 2)) for y in lb))
+    assert diff <= 1e-4 * norm, (diff, norm)
+
+
+def tiny_config():
+    return pipeline.RunConfig(
+        train=train.TrainConfig.preset('tiny', env='pointmaze-medium', steps=100, updates_per_call=50, log_every=50,
+                                       checkpoint_every=50),
+        # kappa 0 and a switch radius that the start states fall within: budgets are overrun and edges pruned
+        eval=evaluate.EvalConfig(episodes=2, tasks=(1, 2), steps=60, delta=0.5, max_keypoints=32, candidates=400,
+                                 switch_radius=0.6, kappa=0.0, ablations=('flat',)))
+
+
+def test_one_program_equals_the_step_by_step_path(tmp_path):
+    cfg = tiny_config()
+    env = envs.make('pointmaze-medium')
+    data = synthetic.point_walks()
+    ds = ds_io.to_device(data)
+    key = jax.random.PRNGKey(3)
+    run = pipeline.make_run(cfg, env)
+    out = jax.device_get(jax.jit(run)(key, ds))
+    # step by step: the host training loop with its checkpoints, then the map, then the chunked evaluation
+    k_train, k_map, k_eval = pipeline.stage_keys(key)
+    state = train.train(cfg.train, data, str(tmp_path / 'run'), key=k_train, progress=False, log=lambda *_: None)
+    trained = train.load(str(tmp_path / 'run'), log=lambda *_: None)
+    agent = evaluate.learned_agent(trained)
+    graph, kp = evaluate.build_map(agent, ds.observations, cfg.eval, k_map)
+    res = evaluate.evaluate(env, agent, graph, cfg.eval.__class__(**{**cfg.eval.__dict__, 'envs': 5}),
+                            progress=False, key=k_eval)
+    assert int(out['keypoints']) == int(kp.count) >= 2
+    assert_params_close(out['params'], {'q': state.q_params, 'pi': state.pi_params})
+    np.testing.assert_array_equal(out['episode_success'], res.success)
+    np.testing.assert_array_equal(out['pruned'], res.pruned)
+    assert out['pruned'].sum() > 0  # kappa 0: budgets overrun, so the comparison covers pruning
+    assert pipeline.summary(run, out) == {a: {v: {k: r for k, r in row.items() if k != 'pruned_mean'}
+                                              for v, row in rows.items()} for a, rows in res.summary.items()}
+    assert set(out['metrics']) >= {'qrl/loss', 'policy/main_loss'}
+
+
+def test_seeds_vmap_in_one_compile_and_match_separate_calls():
+    cfg = tiny_config()
+    env = envs.make('pointmaze-medium')
+    ds = ds_io.to_device(synthetic.point_walks())
+    traces = []
+    run = pipeline.make_run(cfg, env)
+
+    def counted(k, d):
+        traces.append(1)
+        return run(k, d)
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    many = jax.device_get(jax.jit(jax.vmap(counted, in_axes=(0, None)))(keys, ds))
+    assert len(traces) == 1
+    single = jax.jit(run)
+    for i in range(2):
+        one = jax.device_get(single(keys[i], ds))
+        assert int(many['keypoints'][i]) == int(one['keypoints'])
+        np.testing.assert_array_equal(many['episode_success'][i], one['episode_success'])
+        np.testing.assert_array_equal(many['pruned'][i], one['pruned'])
+        assert_params_close(jax.tree.map(lambda x: x[i], many['params']), one['params'])
+    # different seeds give different models
+    assert not np.allclose(jax.tree.leaves(many['params'])[0][0], jax.tree.leaves(many['params'])[0][1])
