@@ -206,7 +206,7 @@ def _run_config(a):
     from aqm_mjx import evaluate, pipeline, train  # pylint: disable=import-outside-toplevel
 
     tcfg = train.TrainConfig.preset(a.preset, env=a.env, seed=a.seed).with_overrides(a.set or [])
-    ecfg = evaluate.EvalConfig(episodes=a.eval_episodes, envs=a.envs, delta=a.delta, seed=a.seed)
+    ecfg = evaluate.EvalConfig(episodes=a.eval_episodes, steps=a.eval_steps, envs=a.envs, delta=a.delta, seed=a.seed)
     return pipeline.RunConfig(train=tcfg, eval=ecfg)
 
 
@@ -276,6 +276,7 @@ def main(argv=None):
                    help='training scale: cpu (minutes on a 2-core CPU), paper (Appendix 10; for a GPU), tiny')
     r.add_argument('--set', action='append', metavar='KEY=VALUE', help='override a training config field')
     r.add_argument('--eval-episodes', type=int, default=4, help='evaluation episodes per task (OGBench: 50)')
+    r.add_argument('--eval-steps', type=int, default=0, help='control steps per evaluation episode (0: env limit)')
     r.add_argument('--envs', type=int, default=64, help='environments per jitted evaluation call')
     r.add_argument('--delta', type=float, default=15.0, help='IWE repel radius (quasimetric units)')
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")

@@ -1,7 +1,8 @@
 """The whole run as one jitted program equals the step-by-step path; seeds vmap in one compile."""
 
+import json
+
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from aqm_mjx import dataset as ds_io
@@ -77,3 +78,25 @@ def test_seeds_vmap_in_one_compile_and_match_separate_calls():
         assert_params_close(jax.tree.map(lambda x: x[i], many['params']), one['params'])
     # different seeds give different models
     assert not np.allclose(jax.tree.leaves(many['params'])[0][0], jax.tree.leaves(many['params'])[0][1])
+
+
+def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys):
+    from aqm_mjx import cli  # pylint: disable=import-outside-toplevel
+
+    path = tmp_path / 'pointmaze-medium-navigate.npz'
+    np.savez(path, **synthetic.point_walks())
+    out = tmp_path / 'run'
+    argv = ['run', '--env', 'pointmaze-medium', '--dataset', str(path), '--preset', 'tiny', '--set', 'steps=100',
+            '--eval-episodes', '1', '--eval-steps', '40', '--delta', '0.5', '--out', str(out)]
+    assert cli.main(argv) == 0
+    first = capsys.readouterr().out
+    assert 'training tiny preset' in first and 'mean success' in first
+    summary = json.loads((out / 'summary.json').read_text())
+    assert set(summary['success']) == {'aqm', 'no-pruning', 'flat'} and summary['keypoints'] >= 1
+    assert (out / 'eval' / 'trajectories.png').exists()
+    # re-running finds the finished training and does not train again
+    assert cli.main(argv) == 0
+    assert 'is complete at step 100' in capsys.readouterr().out
+    assert cli.main(argv + ['--one-program', '--seeds', '2']) == 0
+    res = json.loads((out / 'one_program.json').read_text())
+    assert len(res['success']) == 2 and len(res['keypoints']) == 2

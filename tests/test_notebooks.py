@@ -1,0 +1,21 @@
+"""Every notebook executes headless at its small (`ci`) setting and draws its figures."""
+
+import os
+from pathlib import Path
+
+import nbformat
+import pytest
+from nbclient import NotebookClient
+
+NOTEBOOKS = sorted((Path(__file__).resolve().parent.parent / 'notebooks').glob('*.ipynb'))
+
+
+@pytest.mark.parametrize('path', NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_runs(path, monkeypatch, tmp_path):
+    monkeypatch.setenv('AQM_NOTEBOOK_SCALE', 'ci')
+    monkeypatch.delenv('AQM_DATASET', raising=False)
+    nb = nbformat.read(path, as_version=4)
+    NotebookClient(nb, timeout=900, kernel_name='python3', resources={'metadata': {'path': str(tmp_path)}}).execute()
+    outputs = [o for c in nb.cells if c.cell_type == 'code' for o in c.get('outputs', [])]
+    assert not [o for o in outputs if o.get('output_type') == 'error']
+    assert any('image/png' in o.get('data', {}) for o in outputs), 'no figure was drawn'
