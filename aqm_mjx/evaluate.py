@@ -192,6 +192,7 @@ def device_mesh(devices=None) -> Mesh:
 
 
 def _put(x, sharding):
+    """A global array from one host array that every process holds (single- and multi-host)."""
     x = np.asarray(x)
     return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
 

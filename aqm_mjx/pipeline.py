@@ -117,6 +117,20 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
     return run
 
 
+def shard_seeds(keys: jax.Array, mesh=None) -> jax.Array:
+    """Place ``keys [S, 2]`` with the seed axis sharded over ``mesh`` (default: every device, the
+    same 1-D ``'env'`` mesh as the evaluation batch); ``jax.jit(jax.vmap(run, in_axes=(0, None)))``
+    then runs each device's seeds there, the dataset replicated. ``S`` must be a multiple of the
+    number of devices."""
+    from jax.sharding import NamedSharding, PartitionSpec  # pylint: disable=import-outside-toplevel
+
+    mesh = ev.device_mesh() if mesh is None else mesh
+    n = mesh.devices.size
+    if keys.shape[0] % n:
+        raise ValueError(f'{keys.shape[0]} seeds cannot be split evenly over {n} devices')
+    return ev._put(np.asarray(keys), NamedSharding(mesh, PartitionSpec('env')))  # pylint: disable=protected-access
+
+
 def summary(run, out: dict) -> dict:
     """``{agent: {layout: {'task_T': rate, 'mean': rate}}}`` from one seed's ``out`` (host side)."""
     return ev.format_summary(out['success'], run.agents, run.variants, run.tasks)
@@ -211,6 +225,8 @@ def run_one_program(cfg: RunConfig, env_name: str, data: dict, seeds: int, seed:
 
     run = make_run(cfg, env, progress=progress)
     keys = jnp.stack([jax.random.PRNGKey(seed + i) for i in range(seeds)])
+    if seeds % jax.device_count() == 0:
+        keys = shard_seeds(keys)  # one device's share of the seeds on each device
     program = jax.jit(jax.vmap(run, in_axes=(0, None)))
     t0 = time.perf_counter()
     compiled = program.lower(keys, ds).compile()

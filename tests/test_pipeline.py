@@ -4,6 +4,7 @@ import json
 
 import jax
 import numpy as np
+import pytest
 
 from aqm_mjx import dataset as ds_io
 from aqm_mjx import envs, evaluate, pipeline, synthetic, train
@@ -100,3 +101,39 @@ def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys):
     assert cli.main(argv + ['--one-program', '--seeds', '2']) == 0
     res = json.loads((out / 'one_program.json').read_text())
     assert len(res['success']) == 2 and len(res['keypoints']) == 2
+
+
+SHARD_SEEDS = r'''
+import os, sys
+import jax, numpy as np
+sys.path.insert(0, os.path.dirname(sys.argv[1]))
+from test_pipeline import tiny_config
+from aqm_mjx import dataset as ds_io, envs, evaluate, pipeline, synthetic
+assert jax.device_count() == 2
+run = pipeline.make_run(tiny_config(), envs.make('pointmaze-medium'))
+ds = ds_io.to_device(synthetic.point_walks())
+keys = jax.random.split(jax.random.PRNGKey(0), 2)
+program = jax.jit(jax.vmap(run, in_axes=(0, None)))
+outs = {}
+for n in (1, 2):
+    k = pipeline.shard_seeds(keys, evaluate.device_mesh(jax.devices()[:n]))
+    assert len(k.sharding.device_set) == n
+    outs[n] = jax.device_get(program(k, ds))
+for name in ('episode_success', 'pruned', 'keypoints', 'success'):
+    assert np.array_equal(outs[1][name], outs[2][name]), name
+print('same', outs[1]['keypoints'].tolist())
+'''
+
+
+@pytest.mark.slow  # 80 s: the environment-axis version runs in CI (test_evaluate.py)
+def test_seed_axis_shards_over_two_devices(tmp_path):
+    import os  # pylint: disable=import-outside-toplevel
+    import subprocess  # pylint: disable=import-outside-toplevel
+    import sys  # pylint: disable=import-outside-toplevel
+
+    script = tmp_path / 'shard_seeds.py'
+    script.write_text(SHARD_SEEDS)
+    env = dict(os.environ, XLA_FLAGS='--xla_force_host_platform_device_count=2', JAX_PLATFORMS='cpu')
+    p = subprocess.run([sys.executable, str(script), __file__], capture_output=True, text=True, env=env, timeout=900)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert 'same' in p.stdout
