@@ -35,7 +35,7 @@ def test_shift_suite_keeps_tasks_solvable_and_changes_routes(maze):
         if name.startswith('close'):
             assert base[int(i), int(j)] == 0 and (lengths >= ref).all() and (lengths > ref).any()
             free = np.argwhere(g == 0)
-            assert (shifts.bfs_from(g, tuple(free[0])) >= 0).sum() == len(free)  # nothing cut off
+            assert (mazes.bfs_from(g, tuple(free[0])) >= 0).sum() == len(free)  # nothing cut off
         else:
             assert base[int(i), int(j)] == 1 and (lengths <= ref).all() and (lengths < ref).any()
 

@@ -181,26 +181,36 @@ def wall_distance(xy, grid) -> np.ndarray:
 NEIGHBOURS = ((-1, 0), (0, -1), (1, 0), (0, 1))  # OGBench's BFS order: up, left, down, right in (i, j)
 
 
+def bfs_from(grid, src: tuple[int, int]) -> np.ndarray:
+    """BFS step counts from cell ``src`` to every cell: int64 ``[H, W]``, -1 for walls and cells
+    with no path (NumPy only, so collection does not need SciPy)."""
+    g = np.asarray(grid)
+    h, w = g.shape
+    dist = -np.ones((h, w), np.int64)
+    if g[src] != 0:
+        return dist
+    dist[src] = 0
+    frontier = [src]
+    while frontier:
+        nxt = []
+        for i, j in frontier:
+            for di, dj in NEIGHBOURS:
+                ni, nj = i + di, j + dj
+                if 0 <= ni < h and 0 <= nj < w and g[ni, nj] == 0 and dist[ni, nj] < 0:
+                    dist[ni, nj] = dist[i, j] + 1
+                    nxt.append((ni, nj))
+        frontier = nxt
+    return dist
+
+
 def bfs_steps(grid) -> np.ndarray:
     """Cell-to-cell BFS step counts: int64 ``[H*W, H*W]`` over flat cells ``i * W + j``, -1 where
-    either cell is a wall or there is no path (NumPy only, so collection does not need SciPy)."""
+    either cell is a wall or there is no path."""
     g = np.asarray(grid)
     h, w = g.shape
     out = -np.ones((h * w, h * w), np.int64)
     for src in np.flatnonzero(g.reshape(-1) == 0):
-        dist = out[src]
-        dist[src] = 0
-        frontier = [int(src)]
-        while frontier:
-            nxt = []
-            for cell in frontier:
-                i, j = divmod(cell, w)
-                for di, dj in NEIGHBOURS:
-                    ni, nj = i + di, j + dj
-                    if 0 <= ni < h and 0 <= nj < w and g[ni, nj] == 0 and dist[ni * w + nj] < 0:
-                        dist[ni * w + nj] = dist[cell] + 1
-                        nxt.append(ni * w + nj)
-            frontier = nxt
+        out[src] = bfs_from(g, divmod(int(src), w)).reshape(-1)
     return out
 
 

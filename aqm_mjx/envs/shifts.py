@@ -22,37 +22,15 @@ from aqm_mjx.envs import mazes
 BASE = 'base'
 
 
-def bfs_from(grid, src: tuple[int, int]) -> np.ndarray:
-    """BFS step counts from cell ``src`` to every cell: int64 ``[H, W]``, -1 for walls and cells
-    with no path."""
-    g = np.asarray(grid)
-    h, w = g.shape
-    dist = -np.ones((h, w), np.int64)
-    if g[src] != 0:
-        return dist
-    dist[src] = 0
-    frontier = [src]
-    while frontier:
-        nxt = []
-        for i, j in frontier:
-            for di, dj in mazes.NEIGHBOURS:
-                ni, nj = i + di, j + dj
-                if 0 <= ni < h and 0 <= nj < w and g[ni, nj] == 0 and dist[ni, nj] < 0:
-                    dist[ni, nj] = dist[i, j] + 1
-                    nxt.append((ni, nj))
-        frontier = nxt
-    return dist
-
-
 def route_lengths(grid, maze: str) -> np.ndarray:
     """BFS steps from start to goal cell of each evaluation task of ``maze`` in ``grid``: int64
     ``[tasks]``, -1 where the goal cannot be reached."""
-    return np.array([bfs_from(grid, t.init_ij)[t.goal_ij] for t in mazes.tasks(maze)], np.int64)
+    return np.array([mazes.bfs_from(grid, t.init_ij)[t.goal_ij] for t in mazes.tasks(maze)], np.int64)
 
 
 def _connected(grid) -> bool:
     free = np.argwhere(np.asarray(grid) == 0)
-    return len(free) == 0 or int((bfs_from(grid, tuple(free[0])) >= 0).sum()) == len(free)
+    return len(free) == 0 or int((mazes.bfs_from(grid, tuple(free[0])) >= 0).sum()) == len(free)
 
 
 def candidates(maze: str) -> dict[str, tuple[np.ndarray, int]]:
