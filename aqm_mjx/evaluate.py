@@ -113,9 +113,9 @@ class Agent(NamedTuple):
     aux: Any
 
 
-def learned_agent(trained) -> Agent:
-    """The trained IQE as the quasimetric and the main (Q-SAW) policy's mean as the controller."""
-    learner, state = trained.learner, trained.state
+def learner_agent(learner, aux: Any = None) -> Agent:
+    """The learner's IQE as the quasimetric and its main (Q-SAW) policy's mean as the controller;
+    ``aux`` is ``{'q': q_params, 'pi': pi_params}`` (or None when it is passed at call time)."""
     iqe = learner.quasimetric
 
     def encode(aux, obs):
@@ -128,7 +128,12 @@ def learned_agent(trained) -> Agent:
         del t, key  # deterministic: the Gaussian's mean
         return learner.act(aux['pi'], obs, sub)
 
-    return Agent(encode, dist, controller, aux={'q': state.q_params, 'pi': state.pi_params})
+    return Agent(encode, dist, controller, aux)
+
+
+def learned_agent(trained) -> Agent:
+    """:func:`learner_agent` with a trained model's parameters (from :func:`aqm_mjx.train.load`)."""
+    return learner_agent(trained.learner, {'q': trained.state.q_params, 'pi': trained.state.pi_params})
 
 
 def build_map(agent: Agent, observations: jax.Array, cfg: EvalConfig, key: jax.Array,
@@ -176,6 +181,31 @@ def episode_table(specs, n_variants: int, task_ids, episodes: int) -> Table:
     kappa = np.array([specs[i][1] for i in a], np.float32)
     use = np.array([specs[i][2] for i in a], bool)
     return Table(a, v, t.astype(np.int32), e, seed_id, kappa, use)
+
+
+class Episodes(NamedTuple):
+    """Everything the episode table of an evaluation depends on (host side)."""
+
+    variants: dict  # {name: grid [H, W]}
+    grids: np.ndarray  # int8 [V, H, W], validated
+    task_ids: list  # sorted task ids
+    specs: list  # agent_specs(cfg)
+    table: Table
+    steps: int  # control steps per episode
+
+
+def plan_episodes(env, cfg: EvalConfig, variants: Optional[dict] = None) -> Episodes:
+    """Validate the layouts and task ids of an evaluation and lay out its episode table."""
+    variants = {'base': env.layout} if variants is None else dict(variants)
+    grids = np.stack([mazes.validate_grid(g, env.maze) for g in variants.values()])
+    task_ids = sorted(cfg.tasks) if cfg.tasks else [t.task_id for t in mazes.tasks(env.maze)]
+    valid_ids = {t.task_id for t in mazes.tasks(env.maze)}
+    bad = [t for t in task_ids if t not in valid_ids]
+    if bad:
+        raise ValueError(f'task ids {bad} do not exist in maze {env.maze!r} (it has {sorted(valid_ids)})')
+    specs = agent_specs(cfg)
+    table = episode_table(specs, len(grids), task_ids, cfg.episodes)
+    return Episodes(variants, grids, task_ids, specs, table, int(cfg.steps or env.max_episode_steps))
 
 
 def episode_keys(key: jax.Array, seed_id) -> jax.Array:
@@ -278,16 +308,7 @@ def evaluate(env, agent: Agent, graph: graphs.Graph, cfg: EvalConfig, variants: 
     """
     import time  # pylint: disable=import-outside-toplevel
 
-    variants = {'base': env.layout} if variants is None else dict(variants)
-    grids = np.stack([mazes.validate_grid(g, env.maze) for g in variants.values()])
-    task_ids = sorted(cfg.tasks) if cfg.tasks else [t.task_id for t in mazes.tasks(env.maze)]
-    valid_ids = {t.task_id for t in mazes.tasks(env.maze)}
-    bad = [t for t in task_ids if t not in valid_ids]
-    if bad:
-        raise ValueError(f'task ids {bad} do not exist in maze {env.maze!r} (it has {sorted(valid_ids)})')
-    steps = int(cfg.steps or env.max_episode_steps)
-    specs = agent_specs(cfg)
-    table = episode_table(specs, len(grids), task_ids, cfg.episodes)
+    variants, grids, task_ids, specs, table, steps = plan_episodes(env, cfg, variants)
     mesh = device_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
     chunk = min(int(cfg.envs), len(table.task))
@@ -358,11 +379,12 @@ def print_summary(res: Results) -> None:
 
 def run_cli(checkpoint: str, cfg: EvalConfig, dataset: Optional[str] = None, shift: str = 'base',
             out: Optional[str] = None, map_key: Optional[jax.Array] = None,
-            eval_key: Optional[jax.Array] = None) -> tuple[Results, dict]:
+            eval_key: Optional[jax.Array] = None, data: Optional[dict] = None) -> tuple[Results, dict]:
     """``aqm-mjx evaluate``: load, map, evaluate, write ``results.json`` and the pictures.
 
-    ``map_key`` and ``eval_key`` default to ``PRNGKey(cfg.seed)``. Returns the results and the
-    report written to ``results.json``.
+    ``map_key`` and ``eval_key`` default to ``PRNGKey(cfg.seed)``. ``data``: the arrays of
+    ``dataset`` when the caller has already read them. Returns the results and the report written
+    to ``results.json``.
     """
     import json  # pylint: disable=import-outside-toplevel
     import os  # pylint: disable=import-outside-toplevel
@@ -381,7 +403,8 @@ def run_cli(checkpoint: str, cfg: EvalConfig, dataset: Optional[str] = None, shi
     path = dataset or trained.meta.get('dataset')
     if not path or not os.path.exists(path):
         raise FileNotFoundError(f'keypoints are selected from dataset states: {path!r} not found; pass --dataset')
-    data = ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
+    if data is None:
+        data = ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
     out = out or os.path.join(checkpoint, 'eval')
     os.makedirs(out, exist_ok=True)
     agent = learned_agent(trained)

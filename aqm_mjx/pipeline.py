@@ -24,7 +24,6 @@ import numpy as np
 from aqm_mjx import dataset as ds_io
 from aqm_mjx import evaluate as ev
 from aqm_mjx import envs, rollout, train
-from aqm_mjx.envs import mazes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,14 +82,8 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
     """
     tcfg, ecfg = cfg.train, cfg.eval
     learner = train.make_learner(tcfg, env.obs_size, env.action_size)
-    template = train.Trained(tcfg, learner, None, 0, {})
-    agent = ev.learned_agent(template._replace(state=jax.eval_shape(learner.init, jax.random.PRNGKey(0))))
-    variants = {'base': env.layout} if variants is None else dict(variants)
-    grids = np.stack([mazes.validate_grid(g, env.maze) for g in variants.values()])
-    task_ids = sorted(ecfg.tasks) if ecfg.tasks else [t.task_id for t in mazes.tasks(env.maze)]
-    specs = ev.agent_specs(ecfg)
-    table = ev.episode_table(specs, len(grids), task_ids, ecfg.episodes)
-    steps = int(ecfg.steps or env.max_episode_steps)
+    agent = ev.learner_agent(learner)  # parameters come from training, inside run
+    variants, grids, task_ids, specs, table, steps = ev.plan_episodes(env, ecfg, variants)
     program = rollout.make_evaluate(env, agent.encode, agent.dist, agent.controller, ecfg.agent_config(), steps)
     group = ((table.agent * len(grids) + table.variant) * len(task_ids)
              + np.searchsorted(np.asarray(task_ids), table.task)).astype(np.int32)
@@ -184,11 +177,11 @@ def run_stepwise(cfg: RunConfig, env_name: str, out: str, dataset: Optional[str]
         done = saver.steps()
         saver.close()
     env = envs.make(env_name)
+    data = ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
     t0 = time.perf_counter()
     if done and max(done) >= cfg.train.steps:
         log(f'[2/4 train] {tdir} is complete at step {max(done)}')
     else:
-        data = ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
         log(f'[2/4 train] {"resuming" if done else "training"} {cfg.train.preset} preset, {cfg.train.steps} updates')
         train.train(cfg.train, data, tdir, resume=bool(done), dataset_path=os.path.abspath(path), key=k_train, log=log)
     times['train_s'] = time.perf_counter() - t0
@@ -196,7 +189,7 @@ def run_stepwise(cfg: RunConfig, env_name: str, out: str, dataset: Optional[str]
     t0 = time.perf_counter()
     log('[3/4 map] and [4/4 evaluate]')
     res, report = ev.run_cli(tdir, cfg.eval, dataset=path, shift=shift, out=os.path.join(out, 'eval'),
-                             map_key=k_map, eval_key=k_eval)
+                             map_key=k_map, eval_key=k_eval, data=data)
     times['map_and_evaluate_s'] = time.perf_counter() - t0
     summary_ = dict(env=env_name, seed=seed, config=cfg.to_dict(), dataset=os.path.abspath(path),
                     keypoints=report['keypoints'], success=res.summary,
