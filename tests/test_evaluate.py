@@ -1,9 +1,6 @@
 """The evaluation protocol: shift suites, the episode table, chunk- and device-invariance, the CLI."""
 
 import json
-import os
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -142,13 +139,8 @@ print('identical', int(out[1][0].sum()), out[1][2].shape)
 '''
 
 
-def test_sharding_over_two_devices_gives_bit_identical_results(tmp_path):
-    script = tmp_path / 'shard.py'
-    script.write_text(SHARD_SCRIPT)
-    env = dict(os.environ, XLA_FLAGS='--xla_force_host_platform_device_count=2', JAX_PLATFORMS='cpu')
-    p = subprocess.run([sys.executable, str(script), __file__], capture_output=True, text=True, env=env, timeout=900)
-    assert p.returncode == 0, p.stderr[-3000:]
-    assert 'identical' in p.stdout
+def test_sharding_over_two_devices_gives_bit_identical_results(two_device_python):
+    assert 'identical' in two_device_python(SHARD_SCRIPT, __file__)
 
 
 # ------------------------------------------------------------------------------ learned agent, CLI

@@ -126,14 +126,5 @@ print('same', outs[1]['keypoints'].tolist())
 
 
 @pytest.mark.slow  # 80 s: the environment-axis version runs in CI (test_evaluate.py)
-def test_seed_axis_shards_over_two_devices(tmp_path):
-    import os  # pylint: disable=import-outside-toplevel
-    import subprocess  # pylint: disable=import-outside-toplevel
-    import sys  # pylint: disable=import-outside-toplevel
-
-    script = tmp_path / 'shard_seeds.py'
-    script.write_text(SHARD_SEEDS)
-    env = dict(os.environ, XLA_FLAGS='--xla_force_host_platform_device_count=2', JAX_PLATFORMS='cpu')
-    p = subprocess.run([sys.executable, str(script), __file__], capture_output=True, text=True, env=env, timeout=900)
-    assert p.returncode == 0, p.stderr[-3000:]
-    assert 'same' in p.stdout
+def test_seed_axis_shards_over_two_devices(two_device_python):
+    assert 'same' in two_device_python(SHARD_SEEDS, __file__)
