@@ -278,7 +278,8 @@ def main(argv=None):
     r.add_argument('--eval-episodes', type=int, default=4, help='evaluation episodes per task (OGBench: 50)')
     r.add_argument('--eval-steps', type=int, default=0, help='control steps per evaluation episode (0: env limit)')
     r.add_argument('--envs', type=int, default=64, help='environments per jitted evaluation call')
-    r.add_argument('--delta', type=float, default=15.0, help='IWE repel radius (quasimetric units)')
+    r.add_argument('--delta', type=float, default=8.0,
+                   help='IWE repel radius (quasimetric units; default %(default)s, EvalConfig.delta)')
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
     r.add_argument('--seed', type=int, default=0)
     r.add_argument('--one-program', action='store_true',
@@ -360,7 +361,8 @@ def main(argv=None):
     v.add_argument('--kappa', type=float, default=0.25, help='budget slack of the AQM agent')
     v.add_argument('--ablations', nargs='*', default=['no-pruning', 'flat'],
                    help="extra agents in the same batch: no-pruning, flat, kappa=X (none: pass the flag empty)")
-    v.add_argument('--delta', type=float, default=15.0, help='IWE repel radius (quasimetric units)')
+    v.add_argument('--delta', type=float, default=8.0,
+                   help='IWE repel radius (quasimetric units; default %(default)s, EvalConfig.delta)')
     v.add_argument('--tau', type=float, default=0.0, help='edge and attachment radius (default 2 delta)')
     v.add_argument('--switch-radius', type=float, default=5.0, help='d(s, z) at which a keypoint counts as reached')
     v.add_argument('--max-keypoints', type=int, default=256)

@@ -47,7 +47,7 @@ class EvalConfig:
     envs: int = 1024  # environments per jitted call; the episode table is cut into chunks of this size
     kappa: float = 0.25  # the AQM agent's budget slack (B = (1 + kappa) d(z_i, z_j))
     ablations: tuple = (NO_PRUNING, FLAT)  # extra agents in the same batch: 'no-pruning', 'flat', 'kappa=X'
-    delta: float = 15.0  # IWE repel radius, in the quasimetric's units (control steps); paper: 10-25
+    delta: float = 8.0  # IWE repel radius, quasimetric units (control steps); paper: 10-25; 8 measured best at the cpu preset
     tau: float = 0.0  # edge and attachment radius; 0 = 2 delta
     switch_radius: float = 5.0  # a keypoint counts as reached when d(s, z) <= switch_radius
     max_keypoints: int = 256  # static K
@@ -156,6 +156,24 @@ def build_map(agent: Agent, observations: jax.Array, cfg: EvalConfig, key: jax.A
     lat = jax.vmap(lambda o: agent.encode(aux, o))(cand)
     d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
     return graphs.keypoint_graph(d, lat, cand, k_sel, cfg.delta, cfg.max_keypoints, cfg.edge_radius, cfg.selector)
+
+
+def map_for_evaluation(agent: Agent, observations, cfg: EvalConfig, key: jax.Array) -> tuple[graphs.Graph, dict]:
+    """:func:`build_map` jitted, then trimmed to the keypoint count rounded up to 8 (host side).
+
+    What ``aqm-mjx evaluate`` and the notebooks do before :func:`evaluate`: the rollout program's
+    cost grows with K, so the padded ``cfg.max_keypoints`` slots are cut to the ones used.
+
+    Returns:
+        (trimmed graph, ``{'keypoints': count, 'overflow': bool, 'seconds': float}``).
+    """
+    import time  # pylint: disable=import-outside-toplevel
+
+    t0 = time.perf_counter()
+    graph, kp = jax.jit(lambda aux, o, k: build_map(agent, o, cfg, k, aux))(agent.aux, jnp.asarray(observations), key)
+    n_kp = int(kp.count)
+    graph = graphs.trim(graph, min(cfg.max_keypoints, -(-n_kp // 8) * 8))
+    return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), seconds=time.perf_counter() - t0)
 
 
 # ------------------------------------------------------------------------------ the episode table
@@ -388,7 +406,6 @@ def run_cli(checkpoint: str, cfg: EvalConfig, dataset: Optional[str] = None, shi
     """
     import json  # pylint: disable=import-outside-toplevel
     import os  # pylint: disable=import-outside-toplevel
-    import time  # pylint: disable=import-outside-toplevel
 
     from aqm_mjx import dataset as ds_io  # pylint: disable=import-outside-toplevel
     from aqm_mjx import envs, plots, train  # pylint: disable=import-outside-toplevel
@@ -408,13 +425,10 @@ def run_cli(checkpoint: str, cfg: EvalConfig, dataset: Optional[str] = None, shi
     out = out or os.path.join(checkpoint, 'eval')
     os.makedirs(out, exist_ok=True)
     agent = learned_agent(trained)
-    t0 = time.perf_counter()
-    graph, kp = jax.jit(lambda aux, o, k: build_map(agent, o, cfg, k, aux))(
-        agent.aux, jnp.asarray(data['observations']), jax.random.PRNGKey(cfg.seed) if map_key is None else map_key)
-    n_kp = int(kp.count)
-    graph = graphs.trim(graph, min(cfg.max_keypoints, -(-n_kp // 8) * 8))  # static K: the count, rounded up
-    t_map = time.perf_counter() - t0
-    if bool(kp.overflow):
+    graph, info = map_for_evaluation(agent, data['observations'], cfg,
+                                     jax.random.PRNGKey(cfg.seed) if map_key is None else map_key)
+    n_kp, t_map = info['keypoints'], info['seconds']
+    if info['overflow']:
         print(f'warning: {cfg.max_keypoints} keypoints did not cover the candidates at delta {cfg.delta}; '
               'raise --max-keypoints or --delta')
     print(f'{env_name}, {trained.config.preset} preset at step {trained.step}: {n_kp} keypoints at delta {cfg.delta} '
@@ -427,7 +441,7 @@ def run_cli(checkpoint: str, cfg: EvalConfig, dataset: Optional[str] = None, shi
     edges = graphs.edge_list(graph.w, mask)
     report = dict(env=env_name, checkpoint=os.path.abspath(checkpoint), step=trained.step,
                   train_preset=trained.config.preset, dataset=os.path.abspath(path), keypoints=n_kp,
-                  keypoint_overflow=bool(kp.overflow), edges=int(len(edges)), map_s=round(t_map, 2),
+                  keypoint_overflow=info['overflow'], edges=int(len(edges)), map_s=round(t_map, 2),
                   config=dataclasses.asdict(cfg), agents=res.agents, variants=res.variants, tasks=res.tasks,
                   summary=res.summary, timing=res.timing, backend=jax.default_backend(),
                   device=str(jax.devices()[0]), device_count=jax.device_count())

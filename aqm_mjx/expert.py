@@ -42,8 +42,8 @@ _ACTUATOR_ORDER = jnp.array([6, 7, 0, 1, 2, 3, 4, 5])  # joint vector (qpos orde
 
 
 def yaw(quat: jax.Array) -> jax.Array:
-    """Torso yaw from a (w, x, y, z) quaternion."""
-    w, x, y, z = quat[0], quat[1], quat[2], quat[3]
+    """Torso yaw from (w, x, y, z) quaternions ``[..., 4]`` -> ``[...]``."""
+    w, x, y, z = quat[..., 0], quat[..., 1], quat[..., 2], quat[..., 3]
     return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 

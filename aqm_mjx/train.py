@@ -65,7 +65,9 @@ class TrainConfig:
     const_std: bool = True  # unit std as in OGBench's actors (KL = squared mean difference / 2)
     lr_policy: float = 3e-4
     objective: str = 'saw'  # 'saw': Q-AWR target + Q-SAW main; 'awr': Q-AWR on the goal; 'bc': cloning
-    conditioning: str = 'goal'  # 'goal': raw goal observation; 'direction': unit x-y direction to it
+    # 'goal': raw goal obs (the paper); 'direction': unit x-y direction; 'egocentric': goal + that direction in
+    # the torso frame (our default: at CPU scale the ant ignores a raw goal; policy.py has the measurement)
+    conditioning: str = 'egocentric'
     temperature: float = 3.0  # advantage temperature (beta_T = beta_M)
     weight_clip: float = 100.0  # cap on exp(temperature * advantage) (SAW)
     subgoal_offset: int = 25  # k: subgoal w = s_{min(t + k, end)}
@@ -155,7 +157,8 @@ class TrainConfig:
 
 PRESETS = {
     'paper': dict(steps=1_000_000, batch_size=1024, updates_per_call=1000, log_every=5000, checkpoint_every=50_000,
-                  q_hidden=(512, 512, 512), n_components=512, component_size=1, pi_hidden=(512, 512, 512)),
+                  q_hidden=(512, 512, 512), n_components=512, component_size=1, pi_hidden=(512, 512, 512),
+                  conditioning='goal'),
     'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000,
                 q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256)),
     'tiny': dict(steps=200, batch_size=64, updates_per_call=50, log_every=50, checkpoint_every=100,
@@ -198,7 +201,7 @@ def make_learner(cfg: TrainConfig, obs_size: int, action_size: int) -> Learner:
     q_tx = optax.adam(cfg.lr_quasimetric)
     lam_tx = optax.adam(cfg.lr_lambda)
     pi_tx = optax.adam(cfg.lr_policy)
-    goal_dim = obs_size if cfg.conditioning == 'goal' else 2
+    goal_dim = policy.goal_input_size(obs_size, cfg.conditioning)
     gs = cfg.goal_sampling
     offset, eps, temp, clip = cfg.offset, cfg.epsilon, cfg.temperature, cfg.weight_clip
     b = cfg.batch_size

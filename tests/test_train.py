@@ -50,6 +50,22 @@ def test_direction_conditioning():
     np.testing.assert_array_equal(policy.goal_input(obs, goal, 'goal'), goal)
     with pytest.raises(ValueError, match='conditioning'):
         policy.goal_input(obs, goal, 'polar')
+    # egocentric: the goal, then the unit direction in the torso frame; a 3-d observation has no quaternion
+    np.testing.assert_allclose(policy.goal_input(obs, goal, 'egocentric'), [[4.0, 5.0, -3.0, 0.6, 0.8]], atol=1e-6)
+    assert policy.goal_input_size(3, 'egocentric') == 5 and policy.goal_input_size(29, 'direction') == 2
+
+
+def test_egocentric_direction_turns_with_the_torso_yaw():
+    # ant observations: x, y, z, quaternion (w, x, y, z) about the vertical for yaw psi, 22 more numbers
+    psi = np.array([0.0, np.pi / 2, np.pi, -np.pi / 4])
+    obs = np.zeros((4, 29), np.float32)
+    obs[:, 3], obs[:, 6] = np.cos(psi / 2), np.sin(psi / 2)
+    goal = obs.copy()
+    goal[:, 0] = 3.0  # straight along world +x, 3 m away
+    got = np.asarray(policy.goal_input(jnp.asarray(obs), jnp.asarray(goal), 'egocentric'))
+    np.testing.assert_array_equal(got[:, :29], goal)
+    # world +x seen from a torso turned by psi is (cos psi, -sin psi)
+    np.testing.assert_allclose(got[:, 29:], np.stack([np.cos(psi), -np.sin(psi)], -1), atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------- config
@@ -61,6 +77,7 @@ def test_config_presets_validation_and_json():
         1e-4, 3e-4, 1e-2, 1.0, 3.0)
     assert paper.offset == 125.0 and train.TrainConfig.preset('cpu', env='antmaze-giant').offset == 250.0
     assert train.TrainConfig.preset('cpu', qrl='ogbench').offset == 500.0
+    assert paper.conditioning == 'goal' and train.TrainConfig.preset('cpu').conditioning == 'egocentric'
     cfg = train.TrainConfig.preset('cpu').with_overrides(['batch_size=64', 'q_hidden=64,32', 'objective=bc',
                                                           'push_offset=30'])
     assert (cfg.batch_size, cfg.q_hidden, cfg.objective, cfg.offset) == (64, (64, 32), 'bc', 30.0)
