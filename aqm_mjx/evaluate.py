@@ -136,6 +136,36 @@ def learned_agent(trained) -> Agent:
     return learner_agent(trained.learner, {'q': trained.state.q_params, 'pi': trained.state.pi_params})
 
 
+def oracle_agent(env, grid=None, delta: float = 4.0, speed: float = 0.12) -> tuple[Agent, graphs.Graph, dict]:
+    """An agent without learning, for checking the planner, the pruning and the protocol.
+
+    The quasimetric is the exact BFS maze distance of ``grid`` (default: the maze's layout) as a
+    time-to-reach at ``speed`` m per control step, the keypoints are IWE's at ``delta`` m
+    (:func:`aqm_mjx.rollout.maze_graph`), and the controller steers along ``grid``'s BFS toward the
+    current target: the scripted trot for the ant, a unit displacement for the point. On any other
+    layout both the map and the controller are out of date, as a learned agent's would be.
+
+    Returns:
+        (agent, graph, ``EvalConfig`` keywords that match it: ``switch_radius`` 1.5 m and ``tau`` 2
+        ``delta``, in steps).
+    """
+    from aqm_mjx import expert  # pylint: disable=import-outside-toplevel
+
+    grid = np.asarray(env.layout if grid is None else grid)
+    aux, graph = rollout.maze_graph(grid, delta=delta, speed=speed, obs_size=env.obs_size)
+    aux['bfs'] = jnp.asarray(expert.bfs_next_cell(grid))
+
+    def controller(aux, o, g, t, key):
+        del key
+        cmd = expert.waypoint_command(o[:2], g[:2], aux['bfs'], grid.shape)
+        if env.agent == 'ant':
+            return expert.gait_action(o[:15], o[15:], cmd, t)
+        return cmd / (jnp.linalg.norm(cmd) + 1e-6)
+
+    agent = Agent(rollout.maze_encode, rollout.maze_dist, controller, aux)
+    return agent, graph, dict(switch_radius=1.5 / speed, tau=2 * delta / speed)
+
+
 def build_map(agent: Agent, observations: jax.Array, cfg: EvalConfig, key: jax.Array,
               aux: Any = None) -> tuple[graphs.Graph, Any]:
     """Keypoints and graph from dataset states (pure and jittable; ``aux`` defaults to the agent's).

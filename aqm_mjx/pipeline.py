@@ -158,7 +158,6 @@ def run_stepwise(cfg: RunConfig, env_name: str, out: str, dataset: Optional[str]
                  collect_batch: int = 64, seed: int = 0, shift: str = 'base', log=print) -> dict:
     """``aqm-mjx run``: data -> train (Orbax checkpoints, resumed when interrupted) -> map -> evaluate,
     one progress display per stage; writes ``OUT/summary.json`` and returns it."""
-    import json  # pylint: disable=import-outside-toplevel
     import os  # pylint: disable=import-outside-toplevel
     import time  # pylint: disable=import-outside-toplevel
 

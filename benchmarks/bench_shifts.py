@@ -18,10 +18,9 @@ import argparse
 import json
 import os
 
-import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs, evaluate, expert, plots, rollout
+from aqm_mjx import envs, evaluate, plots
 from aqm_mjx import graph as graphs
 from aqm_mjx.envs import shifts
 
@@ -40,18 +39,8 @@ def main():
     a = p.parse_args()
     env = envs.make(a.env)
     base = env.layout
-    aux, graph = rollout.maze_graph(base, delta=a.delta, speed=SPEED, obs_size=env.obs_size)
-    aux['bfs'] = jnp.asarray(expert.bfs_next_cell(base))
-
-    def controller(aux, o, g, t, key):
-        cmd = expert.waypoint_command(o[:2], g[:2], aux['bfs'], base.shape)
-        if env.agent == 'ant':
-            return expert.gait_action(o[:15], o[15:], cmd, t)
-        return cmd / (jnp.linalg.norm(cmd) + 1e-6)
-
-    agent = evaluate.Agent(rollout.maze_encode, rollout.maze_dist, controller, aux)
-    cfg = evaluate.EvalConfig(episodes=a.episodes, envs=a.envs, switch_radius=1.5 / SPEED, tau=2 * a.delta / SPEED,
-                              ablations=('no-pruning', 'flat'))
+    agent, graph, match = evaluate.oracle_agent(env, base, delta=a.delta, speed=SPEED)
+    cfg = evaluate.EvalConfig(episodes=a.episodes, envs=a.envs, ablations=('no-pruning', 'flat'), **match)
     variants = shifts.suite(env.maze)
     res = evaluate.evaluate(env, agent, graph, cfg, variants)
     evaluate.print_summary(res)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from aqm_mjx import cli, envs, evaluate, expert, rollout, synthetic, train
+from aqm_mjx import cli, envs, evaluate, rollout, synthetic, train
 from aqm_mjx.envs import mazes, shifts
 
 
@@ -70,16 +70,8 @@ def test_config_and_episode_table():
 def exact_point_agent(base):
     """The exact maze distance and a BFS-steering point controller (no learning)."""
     env = envs.make('pointmaze-medium')
-    aux, graph = rollout.maze_graph(base, delta=4.0, speed=0.15, obs_size=env.obs_size)
-    aux['bfs'] = jnp.asarray(expert.bfs_next_cell(base))
-
-    def controller(aux, o, g, t, key):
-        cmd = expert.waypoint_command(o[:2], g[:2], aux['bfs'], base.shape)
-        return cmd / (jnp.linalg.norm(cmd) + 1e-6)
-
-    agent = evaluate.Agent(rollout.maze_encode, rollout.maze_dist, controller, aux)
-    cfg = evaluate.EvalConfig(episodes=2, tasks=(1, 4), steps=400, switch_radius=1.5 / 0.15, tau=8.0 / 0.15,
-                              ablations=('no-pruning', 'flat'))
+    agent, graph, match = evaluate.oracle_agent(env, base, delta=4.0, speed=0.15)
+    cfg = evaluate.EvalConfig(episodes=2, tasks=(1, 4), steps=400, ablations=('no-pruning', 'flat'), **match)
     return env, agent, graph, cfg
 
 

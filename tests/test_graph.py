@@ -75,7 +75,6 @@ def test_iwe_separated_and_covering_brute_force(selector):
     delta = 4.0
     kp = jax.jit(lambda k: fn(d, jnp.asarray(pts), k, delta, 64, chunk=50))(jax.random.PRNGKey(0))
     assert not bool(kp.overflow)
-    z = pts[np.asarray(kp.index)[np.asarray(kp.mask)]]
     dm = np.asarray(graph.pairwise(d, jnp.asarray(pts), jnp.asarray(pts)))
     dsym = np.maximum(dm, dm.T)
     zi = np.asarray(kp.index)[np.asarray(kp.mask)]

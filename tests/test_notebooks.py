@@ -1,6 +1,5 @@
 """Every notebook executes headless at its small (`ci`) setting and draws its figures."""
 
-import os
 from pathlib import Path
 
 import nbformat
