@@ -9,10 +9,18 @@ import platform
 import jax
 
 
+def _cpu_model() -> str:
+    try:
+        with open('/proc/cpuinfo') as f:
+            return next((line.split(':', 1)[1].strip() for line in f if line.startswith('model name')), platform.processor())
+    except OSError:
+        return platform.processor()
+
+
 def finish(rows: list, out: str | None) -> None:
     """Print the machine line; write ``{'meta': ..., 'rows': rows}`` to ``out`` when given."""
-    meta = dict(backend=jax.default_backend(), device=str(jax.devices()[0]), cpu_count=os.cpu_count(),
-                machine=platform.machine(), jax=jax.__version__)
+    meta = dict(backend=jax.default_backend(), device=str(jax.devices()[0]), device_kind=jax.devices()[0].device_kind,
+                cpu_count=os.cpu_count(), cpu=_cpu_model(), machine=platform.machine(), jax=jax.__version__)
     print(json.dumps(meta))
     if out:
         with open(out, 'w') as f:
