@@ -14,6 +14,10 @@ import time
 
 
 def _enable_compile_cache():
+    # Loading a cached CPU executable makes XLA log an E-level "machine type ... doesn't match" line
+    # listing ~150 CPU features (tuning flags differ, the code runs). Quiet XLA's C++ log unless the
+    # user chose a level; Python-side errors are unaffected.
+    os.environ.setdefault('TF_CPP_MIN_LOG_LEVEL', '3')
     import jax  # pylint: disable=import-outside-toplevel
 
     jax.config.update('jax_compilation_cache_dir', os.path.expanduser('~/.cache/aqm_mjx/jax'))
@@ -271,7 +275,8 @@ def main(argv=None):
     r.add_argument('--out', default=None, help='run folder (default runs/ENV)')
     r.add_argument('--dataset', default=None, help='an OGBench-format .npz to train on instead of collecting')
     r.add_argument('--episodes', type=int, default=100, help='navigate episodes to collect (1001 states each)')
-    r.add_argument('--collect-batch', type=int, default=64, help='episodes collected side by side')
+    r.add_argument('--collect-batch', type=int, default=110,
+                   help='episodes collected side by side (default: the 100 + 10 of the default run in one call)')
     r.add_argument('--preset', default='cpu', choices=['cpu', 'paper', 'tiny'],
                    help='training scale: cpu (minutes on a 2-core CPU), paper (Appendix 10; for a GPU), tiny')
     r.add_argument('--set', action='append', metavar='KEY=VALUE', help='override a training config field')
@@ -358,13 +363,14 @@ def main(argv=None):
     v.add_argument('--steps', type=int, default=0, help='control steps per episode (default: the env limit, 1000)')
     v.add_argument('--shift', default='base',
                    help="layout: 'base', 'all' (the maze's shift suite), or one variant such as close-3-3")
-    v.add_argument('--kappa', type=float, default=0.25, help='budget slack of the AQM agent')
+    v.add_argument('--kappa', type=float, default=1.0, help='budget slack of the AQM agent (default %(default)s)')
     v.add_argument('--ablations', nargs='*', default=['no-pruning', 'flat'],
                    help="extra agents in the same batch: no-pruning, flat, kappa=X (none: pass the flag empty)")
     v.add_argument('--delta', type=float, default=8.0,
                    help='IWE repel radius (quasimetric units; default %(default)s, EvalConfig.delta)')
     v.add_argument('--tau', type=float, default=0.0, help='edge and attachment radius (default 2 delta)')
-    v.add_argument('--switch-radius', type=float, default=5.0, help='d(s, z) at which a keypoint counts as reached')
+    v.add_argument('--switch-radius', type=float, default=10.0,
+                   help='d(s, z) at which a keypoint counts as reached (default %(default)s)')
     v.add_argument('--max-keypoints', type=int, default=256)
     v.add_argument('--candidates', type=int, default=10_000, help='dataset states encoded as IWE candidates')
     v.add_argument('--selector', default='iwe', choices=['iwe', 'fps', 'random'])

@@ -130,8 +130,9 @@ def summary(run, out: dict) -> dict:
 
 
 # ------------------------------------------------------------------------ the two paths, host side
-def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, batch: int, log=print) -> str:
-    """The dataset file of a run: ``dataset`` if given, else ``OUT/data/ENV-navigate.npz``, collected
+def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, batch: int, log=print,
+               style: str = 'navigate') -> str:
+    """The dataset file of a run: ``dataset`` if given, else ``OUT/data/ENV-STYLE.npz``, collected
     in MJX (``episodes`` + a tenth for validation) unless it is already there."""
     import os  # pylint: disable=import-outside-toplevel
 
@@ -141,13 +142,13 @@ def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, b
         if not os.path.exists(dataset):
             raise FileNotFoundError(f'dataset {dataset!r} not found')
         return dataset
-    path = os.path.join(out, 'data', f'{env_name}-navigate.npz')
+    path = os.path.join(out, 'data', f'{env_name}-{style}.npz')
     if os.path.exists(path):
         log(f'[1/4 data] found {path}, not collecting again')
         return path
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    ccfg = collect.CollectConfig(env=env_name, style='navigate', episodes=episodes, batch=batch).resolved()
-    log(f'[1/4 data] collecting {ccfg.episodes} + {ccfg.val_episodes} navigate episodes x {ccfg.steps} states')
+    ccfg = collect.CollectConfig(env=env_name, style=style, episodes=episodes, batch=batch).resolved()
+    log(f'[1/4 data] collecting {ccfg.episodes} + {ccfg.val_episodes} {style} episodes x {ccfg.steps} states')
     res = collect.collect(ccfg)
     collect.write(res, path)
     collect.plot(res, path[:-4] + '.png')

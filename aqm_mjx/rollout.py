@@ -23,7 +23,7 @@ of an ``aux`` pytree passed as an argument (so parameters and tables are not com
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -54,78 +54,118 @@ class AgentConfig:
             raise ValueError(f'replan_slots must be >= 1; got {self.replan_slots}')
 
 
+START = -2  # AgentState.prev on the start leg (s -> z_1), whose budget is on the attachment edge
+
+
 @struct.dataclass
 class AgentState:
-    """One environment's planner state (a leading batch axis when vmapped)."""
+    """One environment's planner state (a leading batch axis when vmapped).
+
+    Every leg of the path (s, z_1, ..., z_n, g) runs under a budget (1 + kappa) d(from, to):
+    the start leg s -> z_1 (``prev == START``), keypoint edges z_i -> z_j (``prev == i``, ``node ==
+    j``) and the goal leg z_n -> g (``prev == n``, ``node == -1``). On an overrun the leg is marked
+    untraversable: a keypoint edge in ``w``, a goal attachment in ``to_g``, a start attachment by
+    banning that keypoint as an entry and re-attaching from where the agent stands.
+    """
 
     w: jax.Array  # [K, K] this environment's (pruned) weights
     dist: jax.Array  # [K, K] all-pairs distances of w
     nxt: jax.Array  # int32 [K, K] next hops of w
-    to_g: jax.Array  # [K] keypoint -> goal attachment weights
+    to_g: jax.Array  # [K] keypoint -> goal attachment weights (pruned goal legs: inf)
+    goal: jax.Array  # [L] the goal's latent (re-attaching the start leg)
+    banned: jax.Array  # bool [K] keypoints whose start leg overran (not used as entries again)
     node: jax.Array  # int32 target keypoint (-1: the goal)
-    prev: jax.Array  # int32 keypoint the budgeted edge started at (-1: no budget running)
+    prev: jax.Array  # int32 start of the budgeted leg: a keypoint, START, or -1 (no budget)
     t_edge: jax.Array  # int32 steps spent on the current leg
-    budget: jax.Array  # float32 steps allowed on the current edge (inf: none)
-    pruned: jax.Array  # int32 edges pruned so far
-    cuts: jax.Array  # int32 [MAX_CUTS, 2] the first MAX_CUTS pruned edges (i, j), -1 padded (for plots)
-    needs_replan: jax.Array  # bool: w changed this step
+    budget: jax.Array  # float32 steps allowed on the current leg (inf: none)
+    pruned: jax.Array  # int32 legs marked untraversable so far (edges, goal and start attachments)
+    cuts: jax.Array  # int32 [MAX_CUTS, 2] the first MAX_CUTS pruned keypoint edges (i, j), -1 padded (plots)
+    needs_replan: jax.Array  # bool: w or to_g changed this step
+
+
+def _entry(a_dist: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Array, kappa) -> tuple:
+    """First target of the best plan and its start-leg budget: ``(node, prev, budget)``."""
+    first = planning.plan(a_dist, from_s, to_g, direct).first
+    on_graph = first >= 0
+    budget = jnp.where(on_graph, (1.0 + kappa) * from_s[jnp.maximum(first, 0)], jnp.inf)
+    return first.astype(jnp.int32), jnp.where(on_graph, START, -1).astype(jnp.int32), budget.astype(jnp.float32)
 
 
 def agent_init(dist: Callable, graph: Graph, cfg: AgentConfig, s: jax.Array, g: jax.Array,
-               use_graph: jax.Array = True) -> AgentState:
-    """Plan from latent ``s [L]`` to latent ``g [L]`` on ``graph`` (one environment)."""
+               use_graph: jax.Array = True, kappa: Optional[jax.Array] = None) -> AgentState:
+    """Plan from latent ``s [L]`` to latent ``g [L]`` on ``graph`` (one environment); the start leg's
+    budget uses ``kappa`` (default ``cfg.kappa``)."""
+    kappa = cfg.kappa if kappa is None else kappa
     d_kk, nxt = planning.floyd_warshall(graph.w)
     from_s, to_g, direct = planning.attach(dist, graph.z, graph.mask, s, g, cfg.tau)
-    p = planning.plan(d_kk, from_s, to_g, direct)
-    node = jnp.where(use_graph, p.first, -1).astype(jnp.int32)
-    return AgentState(w=graph.w, dist=d_kk, nxt=nxt.astype(jnp.int32), to_g=to_g, node=node,
-                      prev=jnp.int32(-1), t_edge=jnp.int32(0), budget=jnp.float32(jnp.inf),
-                      pruned=jnp.int32(0), cuts=jnp.full((MAX_CUTS, 2), -1, jnp.int32), needs_replan=jnp.bool_(False))
+    node, prev, budget = _entry(d_kk, from_s, to_g, direct, kappa)
+    node = jnp.where(use_graph, node, -1).astype(jnp.int32)
+    prev = jnp.where(use_graph, prev, -1).astype(jnp.int32)
+    budget = jnp.where(use_graph, budget, jnp.inf).astype(jnp.float32)
+    k = graph.w.shape[0]
+    return AgentState(w=graph.w, dist=d_kk, nxt=nxt.astype(jnp.int32), to_g=to_g, goal=g, banned=jnp.zeros(k, bool),
+                      node=node, prev=prev, t_edge=jnp.int32(0), budget=budget, pruned=jnp.int32(0),
+                      cuts=jnp.full((MAX_CUTS, 2), -1, jnp.int32), needs_replan=jnp.bool_(False))
 
 
-def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """From keypoint ``k``: the next hop towards the best last keypoint (-1: aim at the goal, when
-    ``k`` is that keypoint or no path is left) and the budget of the edge ``k -> hop``."""
+def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """From keypoint ``k``: ``(hop, prev, budget)``. The hop is the next keypoint towards the best
+    last keypoint, or -1 (the goal) when ``k`` is that keypoint (a goal leg budgeted by
+    ``to_g[k]``) or when no path is left (unbudgeted, ``prev`` -1)."""
     total = a.dist[k] + a.to_g
     last = jnp.argmin(total).astype(jnp.int32)
-    hop = jnp.where((k == last) | ~jnp.isfinite(total[last]), -1, a.nxt[k, last])
-    budget = jnp.where(hop >= 0, (1.0 + kappa) * a.w[k, jnp.maximum(hop, 0)], jnp.inf)
-    return hop, budget
+    stuck = ~jnp.isfinite(total[last])
+    hop = jnp.where((k == last) | stuck, -1, a.nxt[k, last]).astype(jnp.int32)
+    leg = jnp.where(hop >= 0, a.w[k, jnp.maximum(hop, 0)], a.to_g[k])
+    budget = jnp.where(stuck, jnp.inf, (1.0 + kappa) * leg).astype(jnp.float32)
+    return hop, jnp.where(stuck, -1, k).astype(jnp.int32), budget
 
 
 def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
                kappa: jax.Array) -> AgentState:
     """Update one environment's target for the current latent ``s [L]`` (switch, time, prune).
 
-    On an overrun the target points back at the pruned edge's start, unbudgeted; :func:`replan`
-    and :func:`redirect` then choose the next hop from there.
+    On a keypoint edge or goal leg overrun the target points back at the leg's start keypoint,
+    unbudgeted; :func:`replan` and :func:`redirect` then choose the next hop from there. On a start
+    leg overrun the agent re-attaches from ``s`` without the banned entries.
     """
     k = jnp.maximum(a.node, 0)
     reached = (a.node >= 0) & (dist(s, graph.z[k]) <= cfg.switch_radius)
     # SWITCH: from the reached keypoint, the next hop of the best path
-    hop, budget = _next_leg(a, k, kappa)
-    # OVERRUN: prune the edge
+    hop, hop_prev, hop_budget = _next_leg(a, k, kappa)
+    # OVERRUN: mark the leg untraversable
     t = a.t_edge + 1
-    overrun = ~reached & (a.prev >= 0) & (a.node >= 0) & (t > a.budget)
+    over = ~reached & (t > a.budget)
+    edge_over = over & (a.prev >= 0) & (a.node >= 0)
+    goal_over = over & (a.prev >= 0) & (a.node < 0)
+    start_over = over & (a.prev == START) & (a.node >= 0)
     i, j = jnp.maximum(a.prev, 0), k
-    w = jnp.where(overrun, a.w.at[i, j].set(jnp.inf), a.w)
-    slot = jnp.where(overrun & (a.pruned < MAX_CUTS), a.pruned, MAX_CUTS)  # out of range: dropped
+    w = jnp.where(edge_over, a.w.at[i, j].set(jnp.inf), a.w)
+    to_g = jnp.where(goal_over, a.to_g.at[i].set(jnp.inf), a.to_g)
+    banned = a.banned | (start_over & (jnp.arange(a.banned.shape[0]) == k))
+    used = jnp.sum(a.cuts[:, 0] >= 0)  # keypoint edges cut so far (pruned also counts attachments)
+    slot = jnp.where(edge_over & (used < MAX_CUTS), used, MAX_CUTS)  # out of range: dropped
     cuts = a.cuts.at[slot].set(jnp.stack([i, j]).astype(jnp.int32), mode='drop')
-    node = jnp.where(reached, hop, jnp.where(overrun, a.prev, a.node)).astype(jnp.int32)
-    prev = jnp.where(reached, jnp.where(hop >= 0, k, -1), jnp.where(overrun, -1, a.prev)).astype(jnp.int32)
-    return a.replace(w=w, cuts=cuts, node=node, prev=prev, t_edge=jnp.where(reached | overrun, 0, t).astype(jnp.int32),
-                     budget=jnp.where(reached, budget, jnp.where(overrun, jnp.inf, a.budget)).astype(jnp.float32),
-                     pruned=a.pruned + overrun.astype(jnp.int32), needs_replan=overrun)
+    # re-attach from here (used on a start-leg overrun only; cheap: 4 K distances)
+    from_s, _, direct = planning.attach(dist, graph.z, graph.mask & ~banned, s, a.goal, cfg.tau)
+    e_node, e_prev, e_budget = _entry(a.dist, from_s, to_g, direct, kappa)
+    back = edge_over | goal_over
+    node = jnp.where(reached, hop, jnp.where(back, a.prev, jnp.where(start_over, e_node, a.node)))
+    prev = jnp.where(reached, hop_prev, jnp.where(back, -1, jnp.where(start_over, e_prev, a.prev)))
+    budget = jnp.where(reached, hop_budget, jnp.where(back, jnp.inf, jnp.where(start_over, e_budget, a.budget)))
+    return a.replace(w=w, to_g=to_g, banned=banned, cuts=cuts, node=node.astype(jnp.int32),
+                     prev=prev.astype(jnp.int32), t_edge=jnp.where(reached | over, 0, t).astype(jnp.int32),
+                     budget=budget.astype(jnp.float32), pruned=a.pruned + over.astype(jnp.int32), needs_replan=back)
 
 
 def redirect(a: AgentState, kappa: jax.Array) -> AgentState:
-    """After a prune and :func:`replan`: from the pruned edge's start z_i, take the next hop of the
-    new best path straight away (a budgeted edge z_i -> hop), rather than walking back to z_i."""
+    """After a prune and :func:`replan`: from the pruned leg's start z_i, take the next hop of the
+    new best path straight away (a budgeted leg from z_i), rather than walking back to z_i."""
     i = jnp.maximum(a.node, 0)  # agent_step pointed node back at z_i
-    hop, budget = _next_leg(a, i, kappa)
+    hop, prev, budget = _next_leg(a, i, kappa)
     go = a.needs_replan
     return a.replace(node=jnp.where(go, hop, a.node).astype(jnp.int32),
-                     prev=jnp.where(go, jnp.where(hop >= 0, i, -1), a.prev).astype(jnp.int32),
+                     prev=jnp.where(go, prev, a.prev).astype(jnp.int32),
                      budget=jnp.where(go, budget, a.budget).astype(jnp.float32), t_edge=jnp.where(go, 0, a.t_edge))
 
 
@@ -176,8 +216,8 @@ def make_evaluate(env, encode: Callable, dist: Callable, controller: Callable, c
         k_reset, k_act = keys[:, 0], keys[:, 1]
         states = jax.vmap(env.reset)(k_reset, task_ids, grids)
         enc = jax.vmap(lambda o: encode(aux, o))
-        agents = jax.vmap(lambda s, g, u: agent_init(d, graph, cfg, s, g, u))(enc(states.obs), enc(states.goal),
-                                                                               use_graph)
+        agents = jax.vmap(lambda s, g, u, kp: agent_init(d, graph, cfg, s, g, u, kp))(
+            enc(states.obs), enc(states.goal), use_graph, kappa)
 
         def body(carry, t):
             states, agents = carry

@@ -104,7 +104,7 @@ def test_protocol_results_do_not_depend_on_chunking():
     # task 4 with (5, 3) closed: the pruning agent reroutes, the non-pruning one does not get there
     assert a.summary['aqm']['close-5-3']['task_4'] == 1.0 and a.summary['no-pruning']['close-5-3']['task_4'] == 0.0
     tr = a.traces[('aqm', 'close-5-3', 4)]
-    assert tr['pruned'] >= 1 and len(tr['cuts']) == min(tr['pruned'], rollout.MAX_CUTS) and tr["xy"].shape == (400, 2)
+    assert 1 <= len(tr['cuts']) <= min(tr['pruned'], rollout.MAX_CUTS) and tr["xy"].shape == (400, 2)
 
 
 SHARD_SCRIPT = r'''

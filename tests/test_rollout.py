@@ -23,7 +23,8 @@ def _agent_step_case():
 def test_agent_switches_budgets_and_prunes_by_hand():
     dist, g, cfg = _agent_step_case()
     a = rollout.agent_init(dist, g, cfg, jnp.array([0.5]), jnp.array([20.5]))
-    assert int(a.node) == 0 and int(a.prev) == -1 and not np.isfinite(float(a.budget))
+    # the start leg s -> z0 is budgeted too: (1 + 0.5) * 0.5
+    assert int(a.node) == 0 and int(a.prev) == rollout.START and float(a.budget) == pytest.approx(0.75)
     a = rollout.agent_step(dist, g, cfg, a, jnp.array([0.2]), 0.5)  # reaches z0: next hop z1, budget 15
     assert (int(a.node), int(a.prev), float(a.budget), int(a.t_edge)) == (1, 0, 15.0, 0)
     for _ in range(15):
@@ -38,11 +39,40 @@ def test_agent_switches_budgets_and_prunes_by_hand():
     a = jax.tree.map(lambda x: x[0], jax.vmap(rollout.redirect)(jax.tree.map(lambda x: x[None], a), jnp.array([0.5])))
     assert int(a.node) == -1 and int(a.prev) == -1  # no path left from z0: aim at the goal
     # kappa = inf never prunes
-    b = rollout.agent_init(dist, g, cfg, jnp.array([0.5]), jnp.array([20.5]))
+    b = rollout.agent_init(dist, g, cfg, jnp.array([0.5]), jnp.array([20.5]), kappa=jnp.inf)
+    assert not np.isfinite(float(b.budget))
     b = rollout.agent_step(dist, g, cfg, b, jnp.array([0.2]), jnp.inf)
     for _ in range(100):
         b = rollout.agent_step(dist, g, cfg, b, jnp.array([3.0]), jnp.inf)
     assert int(b.pruned) == 0 and int(b.node) == 1
+
+
+def test_goal_and_start_legs_are_budgeted_by_hand():
+    dist, g, cfg = _agent_step_case()  # z = 0, 10, 20 on a line, kappa 0.5, tau 6
+    step = lambda a, x: rollout.agent_step(dist, g, cfg, a, jnp.array([x]), 0.5)  # noqa: E731
+    # goal leg: the goal at 25 hangs off z2 (to_g = [inf, inf, 5])
+    a = rollout.agent_init(dist, g, cfg, jnp.array([10.3]), jnp.array([25.0]))
+    assert (int(a.node), int(a.prev), float(a.budget)) == (1, rollout.START, pytest.approx(1.5 * 0.3))
+    a = step(a, 10.0)  # z1 reached: edge z1 -> z2, budget 15
+    assert (int(a.node), int(a.prev), float(a.budget)) == (2, 1, 15.0)
+    a = step(a, 20.0)  # z2 reached: the goal leg z2 -> g, budget 1.5 * 5
+    assert (int(a.node), int(a.prev), float(a.budget)) == (-1, 2, 7.5)
+    for _ in range(7):
+        a = step(a, 20.0)
+    assert int(a.pruned) == 0 and int(a.t_edge) == 7
+    a = step(a, 20.0)  # step 8 > 7.5: the attachment z2 -> g is cut, the weights are untouched
+    assert int(a.pruned) == 1 and bool(a.needs_replan) and not np.isfinite(float(a.to_g[2]))
+    np.testing.assert_array_equal(a.w, g.w)
+    assert (a.cuts == -1).all()  # cuts keeps keypoint edges only
+    # start leg: from 4.0 only z0 is within tau (budget 1.5 * 4 = 6)
+    b = rollout.agent_init(dist, g, cfg, jnp.array([4.0]), jnp.array([20.5]))
+    assert (int(b.node), int(b.prev), float(b.budget)) == (0, rollout.START, 6.0)
+    for _ in range(6):
+        b = step(b, 4.0)
+    assert int(b.pruned) == 0 and int(b.node) == 0
+    b = step(b, 4.0)  # overrun: z0 banned as an entry; re-attached from 4.0 to the nearest other, z1 (6 away)
+    assert bool(b.banned[0]) and not b.banned[1:].any() and int(b.pruned) == 1 and not bool(b.needs_replan)
+    assert (int(b.node), int(b.prev), float(b.budget), int(b.t_edge)) == (1, rollout.START, 9.0, 0)
 
 
 def _scenario(agent, n, steps, kappas):

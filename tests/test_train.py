@@ -78,6 +78,7 @@ def test_config_presets_validation_and_json():
     assert paper.offset == 125.0 and train.TrainConfig.preset('cpu', env='antmaze-giant').offset == 250.0
     assert train.TrainConfig.preset('cpu', qrl='ogbench').offset == 500.0
     assert paper.conditioning == 'goal' and train.TrainConfig.preset('cpu').conditioning == 'egocentric'
+    assert train.TrainConfig.preset('cpu').lr_quasimetric == 3e-4
     cfg = train.TrainConfig.preset('cpu').with_overrides(['batch_size=64', 'q_hidden=64,32', 'objective=bc',
                                                           'push_offset=30'])
     assert (cfg.batch_size, cfg.q_hidden, cfg.objective, cfg.offset) == (64, (64, 32), 'bc', 30.0)

@@ -1,0 +1,182 @@
+"""AQM against its ablations on our own datasets, at CPU scale (RESULTS.md's main table).
+
+    python benchmarks/bench_ablations.py                                   # medium navigate only
+    python benchmarks/bench_ablations.py --cases medium-navigate medium-stitch large-navigate
+    python benchmarks/bench_ablations.py --data-dir runs/antmaze-medium/data   # reuse collected files
+
+For every case MAZE-STYLE:
+1. data: collected in MJX into ``OUT/data/antmaze-MAZE-STYLE.npz`` (navigate: ``--episodes`` x 1001
+   states; stitch: 5 x as many episodes of 201 states, the same transition count), or reused from
+   ``--data-dir``/OUT when the file is there;
+2. training, ``cpu`` preset, one run per low-level objective: ``saw`` (AQM: Q-AWR target policy
+   distilled into Q-SAW), ``awr`` (Q-AWR on the goal) and ``bc`` (behaviour cloning); resumed when
+   the run folder holds a finished run;
+3. maps: IWE (AQM), farthest-point sampling with the same delta, and uniform random keypoints as
+   many as IWE chose, all from the same candidates; every map padded to ``--max-keypoints`` so that
+   one compiled program evaluates every model and map of a maze;
+4. evaluation, OGBench's 5 tasks x ``--episodes-per-task``: rows AQM (saw + IWE), no pruning, flat
+   (main policy on the goal, no graph), AQM with the FPS and random maps, AQM with the awr and bc
+   policies, flat with the awr and bc policies.
+
+Writes ``OUT/ablations.json`` (every row, keypoint counts, times) and ``OUT/ablations.md`` (the table),
+updated after every case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from aqm_mjx import dataset as ds_io
+from aqm_mjx import envs, evaluate, pipeline, train
+from aqm_mjx import graph as graphs
+
+from _report import finish
+
+OBJECTIVES = ('saw', 'awr', 'bc')
+
+
+def pad(graph: graphs.Graph, size: int) -> graphs.Graph:
+    """A graph grown to ``size`` slots: the new rows are masked out, their edges infinite."""
+    k = graph.mask.shape[0]
+    if size < k:
+        raise ValueError(f'cannot pad a {k}-slot graph to {size}')
+    extra = size - k
+    w = jnp.pad(graph.w, ((0, extra), (0, extra)), constant_values=jnp.inf)
+    return graphs.Graph(z=jnp.pad(graph.z, ((0, extra), (0, 0))), obs=jnp.pad(graph.obs, ((0, extra), (0, 0))),
+                        mask=jnp.pad(graph.mask, (0, extra)), w=w)
+
+
+def make_maps(agent, obs, cfg: evaluate.EvalConfig, key) -> dict:
+    """{'iwe': (graph, count), 'fps': ..., 'random': ...}, each padded to cfg.max_keypoints."""
+    out = {}
+    g, info = evaluate.map_for_evaluation(agent, obs, cfg, key)
+    n_iwe = info['keypoints']
+    out['iwe'] = (pad(g, cfg.max_keypoints), n_iwe, info['overflow'])
+    g, info = evaluate.map_for_evaluation(agent, obs, dataclasses.replace(cfg, selector='fps'), key)
+    out['fps'] = (pad(g, cfg.max_keypoints), info['keypoints'], info['overflow'])
+    rcfg = dataclasses.replace(cfg, selector='random', max_keypoints=max(8, n_iwe))
+    g, info = evaluate.map_for_evaluation(agent, obs, rcfg, key)
+    out['random'] = (pad(g, cfg.max_keypoints), info['keypoints'], False)
+    return out
+
+
+def run_case(case: str, a, out: str, rows: list) -> None:
+    maze, style = case.split('-')
+    env_name = f'antmaze-{maze}'
+    env = envs.make(env_name)
+    t0 = time.perf_counter()
+    given = os.path.join(a.data_dir, f'{env_name}-{style}.npz') if a.data_dir else None
+    episodes = a.episodes * (5 if style == 'stitch' else 1)
+    path = pipeline.data_stage(env_name, out, given if given and os.path.exists(given) else None, episodes,
+                               a.collect_batch, style=style)
+    t_data = time.perf_counter() - t0
+    data = ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
+    print(f'{case}: {len(data["observations"]):,} transitions from {path} ({t_data:.0f} s)', flush=True)
+    models, t_train = {}, {}
+    for obj in a.objectives:
+        tdir = os.path.join(out, case, obj)
+        cfg = train.TrainConfig.preset('cpu', env=env_name, objective=obj, seed=a.seed)
+        t0 = time.perf_counter()
+        done = os.path.exists(os.path.join(tdir, 'config.json'))
+        if not done or train.load(tdir, log=lambda *_: None).step < cfg.steps:
+            train.train(cfg, data, tdir, resume=done, dataset_path=path)
+        t_train[obj] = time.perf_counter() - t0
+        models[obj] = train.load(tdir, log=lambda *_: None)
+    ecfg = evaluate.EvalConfig(episodes=a.episodes_per_task, envs=a.envs, delta=a.delta,
+                               max_keypoints=a.max_keypoints, ablations=(), seed=a.seed)
+    key = jax.random.PRNGKey(a.seed)
+    base = {'base': env.layout}
+    program = None
+    results = {}
+
+    def run(name, model, graph, agents_cfg):
+        nonlocal program
+        agent = evaluate.learned_agent(model)
+        if program is None:
+            program = evaluate.make_program(env, agent, agents_cfg, agents_cfg.steps or env.max_episode_steps)
+        res = evaluate.evaluate(env, agent, graph, agents_cfg, base, program=program, progress=False)
+        for who in res.agents:
+            label = name if who == 'aqm' else f'{name} [{who}]'
+            results[label] = res.summary[who]['base']
+            print(f'  {label:<28} {100 * res.summary[who]["base"]["mean"]:5.1f}%', flush=True)
+
+    t0 = time.perf_counter()
+    counts = {}
+    if 'saw' in models:
+        maps = make_maps(evaluate.learned_agent(models['saw']), data['observations'], ecfg, key)
+        counts = {k: v[1] for k, v in maps.items()}
+        overflow = [k for k, v in maps.items() if v[2]]
+        if overflow:
+            print(f'  warning: {overflow} filled all {a.max_keypoints} slots; raise --max-keypoints or --delta')
+        run('AQM (IWE, Q-SAW)', models['saw'], maps['iwe'][0], dataclasses.replace(ecfg, ablations=('no-pruning', 'flat')))
+        run('AQM, FPS keypoints', models['saw'], maps['fps'][0], ecfg)
+        run('AQM, random keypoints', models['saw'], maps['random'][0], ecfg)
+    for obj, label in (('awr', 'Q-AWR low policy'), ('bc', 'BC low policy')):
+        if obj in models:
+            g = make_maps(evaluate.learned_agent(models[obj]), data['observations'], ecfg, key)['iwe'][0]
+            run(f'AQM, {label}', models[obj], g, dataclasses.replace(ecfg, ablations=('flat',)))
+    t_eval = time.perf_counter() - t0
+    rows.append(dict(case=case, transitions=int(len(data['observations'])), keypoints=counts,
+                     episodes_per_task=a.episodes_per_task, results=results,
+                     seconds=dict(data=round(t_data), train={k: round(v) for k, v in t_train.items()}, eval=round(t_eval))))
+
+
+def markdown(rows: list) -> str:
+    labels = []
+    for r in rows:
+        for k in r['results']:
+            if k not in labels:
+                labels.append(k)
+    cases = [r['case'] for r in rows]
+    lines = ['| agent | ' + ' | '.join(cases) + ' |', '|---|' + '---|' * len(cases)]
+    for lab in labels:
+        cells = [f"{100 * r['results'][lab]['mean']:.0f}%" if lab in r['results'] else 'not run' for r in rows]
+        lines.append(f'| {lab} | ' + ' | '.join(cells) + ' |')
+    lines.append('| keypoints IWE / FPS / random | ' + ' | '.join(
+        '/'.join(str(r['keypoints'].get(k, '-')) for k in ('iwe', 'fps', 'random')) for r in rows) + ' |')
+    return '\n'.join(lines) + '\n'
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--cases', nargs='+', default=['medium-navigate'],
+                   help='MAZE-STYLE: medium/large/giant x navigate/stitch')
+    p.add_argument('--objectives', nargs='+', default=list(OBJECTIVES), choices=OBJECTIVES)
+    p.add_argument('--episodes', type=int, default=100, help='navigate episodes collected (stitch: 5x, shorter)')
+    p.add_argument('--collect-batch', type=int, default=110)
+    p.add_argument('--data-dir', default=None, help='folder with antmaze-MAZE-STYLE.npz files to reuse')
+    p.add_argument('--episodes-per-task', type=int, default=4)
+    p.add_argument('--envs', type=int, default=20,
+                   help='environments per call; 20 (one task x 4 episodes x 5 tasks) keeps one compiled shape')
+    p.add_argument('--delta', type=float, default=evaluate.EvalConfig.delta)
+    p.add_argument('--max-keypoints', type=int, default=160)
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--out', default='benchmarks/results/ablations_cpu')
+    a = p.parse_args(argv)
+    for c in a.cases:
+        maze, _, style = c.partition('-')
+        if style not in ('navigate', 'stitch'):
+            p.error(f'case {c!r}: expected MAZE-navigate or MAZE-stitch')
+        envs.parse_name(f'antmaze-{maze}')
+    os.makedirs(a.out, exist_ok=True)
+    rows = []
+    for case in a.cases:
+        run_case(case, a, a.out, rows)
+        with open(os.path.join(a.out, 'ablations.json'), 'w') as f:
+            json.dump(dict(args=vars(a), rows=rows), f, indent=1)
+        with open(os.path.join(a.out, 'ablations.md'), 'w') as f:
+            f.write(markdown(rows))
+    print(markdown(rows))
+    finish(rows, None)
+
+
+if __name__ == '__main__':
+    main()
