@@ -275,8 +275,8 @@ def main(argv=None):
     r.add_argument('--out', default=None, help='run folder (default runs/ENV)')
     r.add_argument('--dataset', default=None, help='an OGBench-format .npz to train on instead of collecting')
     r.add_argument('--episodes', type=int, default=100, help='navigate episodes to collect (1001 states each)')
-    r.add_argument('--collect-batch', type=int, default=110,
-                   help='episodes collected side by side (default: the 100 + 10 of the default run in one call)')
+    r.add_argument('--collect-batch', type=int, default=55,
+                   help='episodes collected side by side (default: the 100 + 10 of the default run in 2 calls)')
     r.add_argument('--preset', default='cpu', choices=['cpu', 'paper', 'tiny'],
                    help='training scale: cpu (minutes on a 2-core CPU), paper (Appendix 10; for a GPU), tiny')
     r.add_argument('--set', action='append', metavar='KEY=VALUE', help='override a training config field')
