@@ -385,6 +385,11 @@ def main(argv=None):
     except (ValueError, TypeError, FileExistsError, FileNotFoundError, RuntimeError) as err:
         print(f'aqm-mjx: error: {err}', file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # files are written atomically and checkpoints are complete or absent: nothing half-written
+        print(f'\naqm-mjx {a.cmd}: interrupted. Run the same command again to resume (training continues '
+              'from its last checkpoint; finished stages are not redone).', file=sys.stderr)
+        return 130
 
 
 if __name__ == '__main__':

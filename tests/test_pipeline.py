@@ -81,17 +81,33 @@ def test_seeds_vmap_in_one_compile_and_match_separate_calls():
     assert not np.allclose(jax.tree.leaves(many['params'])[0][0], jax.tree.leaves(many['params'])[0][1])
 
 
-def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys):
+def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys, monkeypatch):
+    from aqm_mjx import checkpoint as ckpt  # pylint: disable=import-outside-toplevel
     from aqm_mjx import cli  # pylint: disable=import-outside-toplevel
 
     path = tmp_path / 'pointmaze-medium-navigate.npz'
     np.savez(path, **synthetic.point_walks())
     out = tmp_path / 'run'
     argv = ['run', '--env', 'pointmaze-medium', '--dataset', str(path), '--preset', 'tiny', '--set', 'steps=100',
-            '--eval-episodes', '1', '--eval-steps', '40', '--delta', '0.5', '--out', str(out)]
+            '--set', 'checkpoint_every=50', '--eval-episodes', '1', '--eval-steps', '40', '--delta', '0.5',
+            '--out', str(out)]
+    # Ctrl-C right after the first checkpoint (step 50): exit 130, a message, nothing evaluated yet
+    save = ckpt.Checkpointer.save
+
+    def save_then_interrupt(self, step, state, config):
+        save(self, step, state, config)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ckpt.Checkpointer, 'save', save_then_interrupt)
+    assert cli.main(argv) == 130
+    assert 'interrupted' in capsys.readouterr().err and not (out / 'summary.json').exists()
+    monkeypatch.setattr(ckpt.Checkpointer, 'save', save)
+    # the same command again resumes at step 50 and finishes
     assert cli.main(argv) == 0
     first = capsys.readouterr().out
-    assert 'training tiny preset' in first and 'mean success' in first
+    assert 'resuming tiny preset' in first and 'mean success' in first
+    steps = [json.loads(line)['step'] for line in (out / 'train' / 'metrics.jsonl').read_text().splitlines()]
+    assert steps == [50, 100]  # one line per log_every, none repeated: it went on from 50
     summary = json.loads((out / 'summary.json').read_text())
     assert set(summary['success']) == {'aqm', 'no-pruning', 'flat'} and summary['keypoints'] >= 1
     assert (out / 'eval' / 'trajectories.png').exists()
