@@ -1,6 +1,6 @@
 """Every stage's throughput in one table, each against the alternative measured in the same run.
 
-    python benchmarks/run_all.py                      # CPU scale: about 8 minutes on 2 cores
+    python benchmarks/run_all.py                      # CPU scale: about 3.5 minutes on 2 cores
     python benchmarks/run_all.py --scale gpu          # accelerator batches
     python benchmarks/run_all.py --out benchmarks/results/all_cpu.json
 
