@@ -32,7 +32,6 @@ import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from aqm_mjx import dataset as ds_io
 from aqm_mjx import envs, evaluate, pipeline, train
@@ -73,10 +72,12 @@ def run_case(case: str, a, out: str, rows: list) -> None:
     env_name = f'antmaze-{maze}'
     env = envs.make(env_name)
     t0 = time.perf_counter()
-    given = os.path.join(a.data_dir, f'{env_name}-{style}.npz') if a.data_dir else None
+    # ours (antmaze-medium-navigate.npz) or OGBench's own file (antmaze-medium-navigate-v0.npz)
+    names = [f'{env_name}-{style}.npz', f'{env_name}-{style}-v0.npz']
+    given = next((os.path.join(a.data_dir, n) for n in names if a.data_dir and os.path.exists(os.path.join(a.data_dir, n))),
+                 None)
     episodes = a.episodes * (5 if style == 'stitch' else 1)
-    path = pipeline.data_stage(env_name, out, given if given and os.path.exists(given) else None, episodes,
-                               a.collect_batch, style=style)
+    path = pipeline.data_stage(env_name, out, given, episodes, a.collect_batch, style=style)
     t_data = time.perf_counter() - t0
     data = ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
     print(f'{case}: {len(data["observations"]):,} transitions from {path} ({t_data:.0f} s)', flush=True)
@@ -152,7 +153,8 @@ def main(argv=None):
     p.add_argument('--objectives', nargs='+', default=list(OBJECTIVES), choices=OBJECTIVES)
     p.add_argument('--episodes', type=int, default=100, help='navigate episodes collected (stitch: 5x, shorter)')
     p.add_argument('--collect-batch', type=int, default=110)
-    p.add_argument('--data-dir', default=None, help='folder with antmaze-MAZE-STYLE.npz files to reuse')
+    p.add_argument('--data-dir', default=None,
+                   help='folder with antmaze-MAZE-STYLE.npz (ours) or antmaze-MAZE-STYLE-v0.npz (OGBench) files to use')
     p.add_argument('--episodes-per-task', type=int, default=4)
     p.add_argument('--envs', type=int, default=20,
                    help='environments per call; 20 (one task x 4 episodes x 5 tasks) keeps one compiled shape')
