@@ -9,7 +9,7 @@ The goal input is the raw goal observation (the paper's choice), the unit direct
 x-y to the goal's x-y (Appendix 10.3), or ``egocentric``: the goal observation together with that unit
 direction turned into the agent's own frame. For the ant, whose torso yaw is read from the
 quaternion ``obs[3:7]``, the egocentric direction is what a walking gait needs: a policy that must
-learn the rotation from the quaternion itself ignores the goal at CPU scale (measured: 0.3 m vs 7.8 m
+learn the rotation from the quaternion itself ignores the goal at CPU scale (measured: -1.8 m vs 8.4 m
 of progress towards an 8 m goal in 100 steps; see RESULTS.md). Observations without a quaternion (the
 point mass, 2-d) keep the world frame.
 
