@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from aqm_mjx import envs, expert, plan, rollout
+from aqm_mjx import envs, evaluate, plan, rollout
 from aqm_mjx.envs import mazes
 
 
@@ -82,21 +82,15 @@ def _scenario(agent, n, steps, kappas):
     closed[5, 3] = 1
     env = envs.make(f'{agent}maze-medium')
     speed = 0.12 if agent == 'ant' else 0.15
-    aux, graph = rollout.maze_graph(base, delta=4.0, speed=speed, obs_size=env.obs_size)
-    aux['bfs'] = jnp.asarray(expert.bfs_next_cell(base))  # the controller knows only the training layout
-
-    def controller(aux, o, g, t, key):
-        cmd = expert.waypoint_command(o[:2], g[:2], aux['bfs'], base.shape)
-        if agent == 'ant':
-            return expert.gait_action(o[:15], o[15:], cmd, t)
-        return cmd / (jnp.linalg.norm(cmd) + 1e-6)
-
-    cfg = rollout.AgentConfig(switch_radius=1.5 / speed, tau=2 * 4.0 / speed)
+    # the map and the controller know only the training layout
+    oracle, graph, match = evaluate.oracle_agent(env, base, delta=4.0, speed=speed)
+    aux = oracle.aux
+    cfg = rollout.AgentConfig(switch_radius=match['switch_radius'], tau=match['tau'])
     traces = []
 
     def counted(*args):
         traces.append(1)
-        return rollout.make_evaluate(env, rollout.maze_encode, rollout.maze_dist, controller, cfg, steps)(*args)
+        return rollout.make_evaluate(env, oracle.encode, oracle.dist, oracle.controller, cfg, steps)(*args)
 
     run = jax.jit(counted)
     b = n * len(kappas)
