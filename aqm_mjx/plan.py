@@ -154,6 +154,29 @@ class Plan:
     reachable: jax.Array
 
 
+def _attachment(fwd: jax.Array, bwd: jax.Array, mask: jax.Array, tau: float, nearest_fallback: bool) -> jax.Array:
+    """``fwd [K]`` where ``d_sym = max(fwd, bwd) < tau`` (or the nearest valid keypoint when none is), else inf."""
+    dsym = jnp.where(mask, jnp.maximum(fwd, bwd), jnp.inf)
+    within = dsym < tau
+    if nearest_fallback:
+        within = within | ((jnp.arange(fwd.shape[0]) == jnp.argmin(dsym)) & ~within.any() & mask)
+    return jnp.where(within & mask, fwd, jnp.inf)
+
+
+def attach_start(dist: Dist, z: jax.Array, mask: jax.Array, s: jax.Array, tau: float,
+                 nearest_fallback: bool = True) -> jax.Array:
+    """The state's edges ``s -> z_i`` of :func:`attach` alone: ``from_s [K]`` (2 K distances)."""
+    ds = jax.vmap(lambda y: dist(s, y))(z)
+    sd = jax.vmap(lambda y: dist(y, s))(z)
+    return _attachment(ds, sd, mask, tau, nearest_fallback)
+
+
+def direct_edge(dist: Dist, s: jax.Array, g: jax.Array, tau: float) -> jax.Array:
+    """``d(s, g)`` when ``d_sym(s, g) < tau``, else inf."""
+    direct_d = dist(s, g)
+    return jnp.where(jnp.maximum(direct_d, dist(g, s)) < tau, direct_d, jnp.inf)
+
+
 def attach(dist: Dist, z: jax.Array, mask: jax.Array, s: jax.Array, g: jax.Array, tau: float,
            nearest_fallback: bool = True) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Edges from the state and into the goal.
@@ -165,21 +188,10 @@ def attach(dist: Dist, z: jax.Array, mask: jax.Array, s: jax.Array, g: jax.Array
     Returns:
         (from_s ``[K]``, to_g ``[K]``, direct scalar), ``inf`` for no edge.
     """
-    ds = jax.vmap(lambda y: dist(s, y))(z)
-    sd = jax.vmap(lambda y: dist(y, s))(z)
     dg = jax.vmap(lambda y: dist(y, g))(z)
     gd = jax.vmap(lambda y: dist(g, y))(z)
-
-    def edges(fwd, bwd):
-        dsym = jnp.where(mask, jnp.maximum(fwd, bwd), jnp.inf)
-        within = dsym < tau
-        if nearest_fallback:
-            within = within | ((jnp.arange(z.shape[0]) == jnp.argmin(dsym)) & ~within.any() & mask)
-        return jnp.where(within & mask, fwd, jnp.inf)
-
-    direct_d = dist(s, g)
-    direct = jnp.where(jnp.maximum(direct_d, dist(g, s)) < tau, direct_d, jnp.inf)
-    return edges(ds, sd), edges(dg, gd), direct
+    return (attach_start(dist, z, mask, s, tau, nearest_fallback),
+            _attachment(dg, gd, mask, tau, nearest_fallback), direct_edge(dist, s, g, tau))
 
 
 def plan(dist_kk: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Array) -> Plan:

@@ -146,8 +146,9 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     used = jnp.sum(a.cuts[:, 0] >= 0)  # keypoint edges cut so far (pruned also counts attachments)
     slot = jnp.where(edge_over & (used < MAX_CUTS), used, MAX_CUTS)  # out of range: dropped
     cuts = a.cuts.at[slot].set(jnp.stack([i, j]).astype(jnp.int32), mode='drop')
-    # re-attach from here (used on a start-leg overrun only; cheap: 4 K distances)
-    from_s, _, direct = planning.attach(dist, graph.z, graph.mask & ~banned, s, a.goal, cfg.tau)
+    # re-attach from here (used on a start-leg overrun only; 2 K + 2 distances per step)
+    from_s = planning.attach_start(dist, graph.z, graph.mask & ~banned, s, cfg.tau)
+    direct = planning.direct_edge(dist, s, a.goal, cfg.tau)
     e_node, e_prev, e_budget = _entry(a.dist, from_s, to_g, direct, kappa)
     back = edge_over | goal_over
     node = jnp.where(reached, hop, jnp.where(back, a.prev, jnp.where(start_over, e_node, a.node)))
