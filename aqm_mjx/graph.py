@@ -147,3 +147,15 @@ def trim(graph: Graph, size: int) -> Graph:
     if not count <= size <= graph.mask.shape[0] or bool(jnp.any(graph.mask[size:])):
         raise ValueError(f'cannot trim a graph with {count} keypoints (valid slots not first?) to {size} slots')
     return Graph(z=graph.z[:size], obs=graph.obs[:size], mask=graph.mask[:size], w=graph.w[:size, :size])
+
+
+def pad(graph: Graph, size: int) -> Graph:
+    """The inverse of :func:`trim`: ``size`` slots, the new ones masked out with infinite edges, so
+    that graphs of different counts share one static K (one compiled rollout program)."""
+    k = graph.mask.shape[0]
+    if size < k:
+        raise ValueError(f'cannot pad a graph of {k} slots to {size}')
+    extra = size - k
+    return Graph(z=jnp.pad(graph.z, ((0, extra), (0, 0))), obs=jnp.pad(graph.obs, ((0, extra), (0, 0))),
+                 mask=jnp.pad(graph.mask, (0, extra)),
+                 w=jnp.pad(graph.w, ((0, extra), (0, extra)), constant_values=jnp.inf))

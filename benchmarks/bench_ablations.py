@@ -31,7 +31,6 @@ import os
 import time
 
 import jax
-import jax.numpy as jnp
 
 from aqm_mjx import dataset as ds_io
 from aqm_mjx import envs, evaluate, pipeline, train
@@ -42,28 +41,16 @@ from _report import finish
 OBJECTIVES = ('saw', 'awr', 'bc')
 
 
-def pad(graph: graphs.Graph, size: int) -> graphs.Graph:
-    """A graph grown to ``size`` slots: the new rows are masked out, their edges infinite."""
-    k = graph.mask.shape[0]
-    if size < k:
-        raise ValueError(f'cannot pad a {k}-slot graph to {size}')
-    extra = size - k
-    w = jnp.pad(graph.w, ((0, extra), (0, extra)), constant_values=jnp.inf)
-    return graphs.Graph(z=jnp.pad(graph.z, ((0, extra), (0, 0))), obs=jnp.pad(graph.obs, ((0, extra), (0, 0))),
-                        mask=jnp.pad(graph.mask, (0, extra)), w=w)
-
-
-def make_maps(agent, obs, cfg: evaluate.EvalConfig, key) -> dict:
-    """{'iwe': (graph, count), 'fps': ..., 'random': ...}, each padded to cfg.max_keypoints."""
+def make_maps(agent, obs, cfg: evaluate.EvalConfig, key, selectors=('iwe', 'fps', 'random')) -> dict:
+    """{selector: (graph, count, overflow)}, each padded to cfg.max_keypoints; 'random' takes as many
+    keypoints as 'iwe' chose (IWE runs first)."""
     out = {}
-    g, info = evaluate.map_for_evaluation(agent, obs, cfg, key)
-    n_iwe = info['keypoints']
-    out['iwe'] = (pad(g, cfg.max_keypoints), n_iwe, info['overflow'])
-    g, info = evaluate.map_for_evaluation(agent, obs, dataclasses.replace(cfg, selector='fps'), key)
-    out['fps'] = (pad(g, cfg.max_keypoints), info['keypoints'], info['overflow'])
-    rcfg = dataclasses.replace(cfg, selector='random', max_keypoints=max(8, n_iwe))
-    g, info = evaluate.map_for_evaluation(agent, obs, rcfg, key)
-    out['random'] = (pad(g, cfg.max_keypoints), info['keypoints'], False)
+    for sel in selectors:
+        scfg = dataclasses.replace(cfg, selector=sel)
+        if sel == 'random':
+            scfg = dataclasses.replace(scfg, max_keypoints=max(8, out['iwe'][1]))
+        g, info = evaluate.map_for_evaluation(agent, obs, scfg, key)
+        out[sel] = (graphs.pad(g, cfg.max_keypoints), info['keypoints'], info['overflow'] and sel != 'random')
     return out
 
 
@@ -122,7 +109,7 @@ def run_case(case: str, a, out: str, rows: list) -> None:
         run('AQM, random keypoints', models['saw'], maps['random'][0], ecfg)
     for obj, label in (('awr', 'Q-AWR low policy'), ('bc', 'BC low policy')):
         if obj in models:
-            g = make_maps(evaluate.learned_agent(models[obj]), data['observations'], ecfg, key)['iwe'][0]
+            g = make_maps(evaluate.learned_agent(models[obj]), data['observations'], ecfg, key, ('iwe',))['iwe'][0]
             run(f'AQM, {label}', models[obj], g, dataclasses.replace(ecfg, ablations=('flat',)))
     t_eval = time.perf_counter() - t0
     rows.append(dict(case=case, transitions=int(len(data['observations'])), keypoints=counts,

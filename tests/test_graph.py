@@ -193,3 +193,19 @@ def test_maze_graph_connected_at_two_delta(maze):
         _, n = graph.components(w, kp.mask)
         print(f'{maze}: delta {delta_m} m (~{delta_m / 0.14:.0f} steps) -> {int(kp.count)} keypoints, {int(n)} component(s)')
         assert not bool(kp.overflow) and int(n) == regions
+
+
+def test_pad_and_trim_are_inverse_and_padding_is_inert():
+    w = jnp.array([[0.0, 2.0, jnp.inf], [1.0, 0.0, 3.0], [jnp.inf, jnp.inf, 0.0]])
+    g = graph.Graph(z=jnp.arange(6.0).reshape(3, 2), obs=jnp.ones((3, 4)), mask=jnp.array([True, True, False]), w=w)
+    p = graph.pad(g, 5)
+    assert p.mask.tolist() == [True, True, False, False, False] and p.z.shape == (5, 2) and p.obs.shape == (5, 4)
+    np.testing.assert_array_equal(p.w[:3, :3], w)
+    assert not np.isfinite(np.asarray(p.w[3:])).any() and not np.isfinite(np.asarray(p.w[:, 3:])).any()
+    # shortest paths among the original slots do not change
+    np.testing.assert_array_equal(plan.floyd_warshall(p.w)[0][:3, :3], plan.floyd_warshall(w)[0])
+    back = graph.trim(p, 3)
+    for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(g)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match='cannot pad'):
+        graph.pad(g, 2)
