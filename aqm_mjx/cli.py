@@ -206,11 +206,17 @@ def cmd_train(a):
     return 0
 
 
+def _given(**options) -> dict:
+    """The options the user set (``None``: not given, so the config class's default applies)."""
+    return {k: v for k, v in options.items() if v is not None}
+
+
 def _run_config(a):
     from aqm_mjx import evaluate, pipeline, train  # pylint: disable=import-outside-toplevel
 
     tcfg = train.TrainConfig.preset(a.preset, env=a.env, seed=a.seed).with_overrides(a.set or [])
-    ecfg = evaluate.EvalConfig(episodes=a.eval_episodes, steps=a.eval_steps, envs=a.envs, delta=a.delta, seed=a.seed)
+    ecfg = evaluate.EvalConfig(episodes=a.eval_episodes, steps=a.eval_steps, envs=a.envs, seed=a.seed,
+                               **_given(delta=a.delta))
     return pipeline.RunConfig(train=tcfg, eval=ecfg)
 
 
@@ -254,9 +260,9 @@ def cmd_evaluate(a):
     from aqm_mjx import evaluate  # pylint: disable=import-outside-toplevel
 
     cfg = evaluate.EvalConfig(episodes=a.episodes, tasks=tuple(a.tasks or ()), steps=a.steps, envs=a.envs,
-                              kappa=a.kappa, ablations=tuple(a.ablations), delta=a.delta, tau=a.tau,
-                              switch_radius=a.switch_radius, max_keypoints=a.max_keypoints, candidates=a.candidates,
-                              selector=a.selector, seed=a.seed)
+                              ablations=tuple(a.ablations), tau=a.tau, max_keypoints=a.max_keypoints,
+                              candidates=a.candidates, selector=a.selector, seed=a.seed,
+                              **_given(kappa=a.kappa, delta=a.delta, switch_radius=a.switch_radius))
     evaluate.run_cli(a.checkpoint, cfg, dataset=a.dataset, shift=a.shift, out=a.out)
     return 0
 
@@ -283,8 +289,7 @@ def main(argv=None):
     r.add_argument('--eval-episodes', type=int, default=4, help='evaluation episodes per task (OGBench: 50)')
     r.add_argument('--eval-steps', type=int, default=0, help='control steps per evaluation episode (0: env limit)')
     r.add_argument('--envs', type=int, default=64, help='environments per jitted evaluation call')
-    r.add_argument('--delta', type=float, default=8.0,
-                   help='IWE repel radius (quasimetric units; default %(default)s, EvalConfig.delta)')
+    r.add_argument('--delta', type=float, default=None, help="IWE repel radius (quasimetric units; default: EvalConfig's)")
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
     r.add_argument('--seed', type=int, default=0)
     r.add_argument('--one-program', action='store_true',
@@ -363,14 +368,13 @@ def main(argv=None):
     v.add_argument('--steps', type=int, default=0, help='control steps per episode (default: the env limit, 1000)')
     v.add_argument('--shift', default='base',
                    help="layout: 'base', 'all' (the maze's shift suite), or one variant such as close-3-3")
-    v.add_argument('--kappa', type=float, default=1.0, help='budget slack of the AQM agent (default %(default)s)')
+    v.add_argument('--kappa', type=float, default=None, help="budget slack of the AQM agent (default: EvalConfig's)")
     v.add_argument('--ablations', nargs='*', default=['no-pruning', 'flat'],
                    help="extra agents in the same batch: no-pruning, flat, kappa=X (none: pass the flag empty)")
-    v.add_argument('--delta', type=float, default=8.0,
-                   help='IWE repel radius (quasimetric units; default %(default)s, EvalConfig.delta)')
+    v.add_argument('--delta', type=float, default=None, help="IWE repel radius (quasimetric units; default: EvalConfig's)")
     v.add_argument('--tau', type=float, default=0.0, help='edge and attachment radius (default 2 delta)')
-    v.add_argument('--switch-radius', type=float, default=10.0,
-                   help='d(s, z) at which a keypoint counts as reached (default %(default)s)')
+    v.add_argument('--switch-radius', type=float, default=None,
+                   help="d(s, z) at which a keypoint counts as reached (default: EvalConfig's)")
     v.add_argument('--max-keypoints', type=int, default=256)
     v.add_argument('--candidates', type=int, default=10_000, help='dataset states encoded as IWE candidates')
     v.add_argument('--selector', default='iwe', choices=['iwe', 'fps', 'random'])

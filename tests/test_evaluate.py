@@ -168,6 +168,10 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
     assert res['agents'] == ['aqm', 'no-pruning', 'flat'] and res['variants'][0] == 'base'
     assert res['variants'] == list(shifts.suite('medium')) and 1 <= res['keypoints'] <= 16
     assert res['timing']['chunks'] == -(-3 * len(res['variants']) * 5 // 32)
+    # options not given take EvalConfig's defaults; given ones win
+    defaults = evaluate.EvalConfig()
+    assert (res['config']['kappa'], res['config']['switch_radius']) == (defaults.kappa, defaults.switch_radius)
+    assert res['config']['delta'] == 1.0
     for png in ('success.png', 'trajectories.png', 'heatmap.png'):
         assert (ev / png).read_bytes()[:4] == b'\x89PNG'
     assert 'aqm / base' in capsys.readouterr().out
