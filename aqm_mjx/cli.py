@@ -1,12 +1,15 @@
-"""Command line: ``aqm-mjx {run,collect,train,evaluate,rollouts,render,envs}``.
+"""Command line: ``aqm-mjx {run,collect,train,evaluate,methods,rollouts,render,envs}``.
 
 ``run`` is the whole pipeline (collect -> train -> keypoints -> evaluate); the other commands are
-its stages, or tools.
+its stages, or tools. This module only parses arguments: the options of the map, agent and protocol
+sections are built from the fields of their configs (help, choices and types included), and every
+default comes from a preset of :class:`aqm_mjx.pipeline.RunConfig` or a config class.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -35,40 +38,6 @@ def cmd_envs(a):
     return 0
 
 
-def keypoint_map_panels(maze: str, deltas, n_candidates: int = 20000, sub: int = 4, seed: int = 0):
-    """IWE keypoints and tau = 2 delta edges with the exact maze distance as the quasimetric, one
-    panel per delta (the paper's Figures 11-13, with a stand-in for a trained quasimetric)."""
-    import jax  # pylint: disable=import-outside-toplevel
-    import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
-    import numpy as np  # pylint: disable=import-outside-toplevel
-
-    from aqm_mjx import graph, keypoints  # pylint: disable=import-outside-toplevel
-    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
-
-    grid = mazes.layout(maze)
-    table = jnp.asarray(mazes.geodesic_table(grid, sub))
-    rng = np.random.default_rng(seed)
-    free = np.argwhere(grid == 0)
-    xy = mazes.ij_to_xy(free[rng.integers(len(free), size=n_candidates)]) + rng.uniform(-1.9, 1.9, (n_candidates, 2))
-    cand = jnp.asarray(mazes.xy_to_subcell(xy, grid.shape, sub))[:, None]
-
-    def lookup(table):
-        return lambda x, y: table[x[0], y[0]]
-
-    # The table and candidates are arguments: captured as constants XLA would constant-fold them.
-    select = jax.jit(lambda table, cand, key, delta: keypoints.iwe(lookup(table), cand, key, delta, 512))
-    dist = lookup(table)
-    panels = []
-    for delta in deltas:
-        kp = select(table, cand, jax.random.PRNGKey(seed), float(delta))
-        idx = np.asarray(kp.index)[np.asarray(kp.mask)]
-        w = graph.build_graph(dist, cand[jnp.asarray(idx)], jnp.ones(len(idx), bool), float(delta))
-        _, ncomp = graph.components(w, jnp.ones(len(idx), bool))
-        panels.append(dict(nodes_xy=xy[idx], edges=graph.edge_list(w),
-                           title=f'delta {delta:g} m: {len(idx)} keypoints, {int(ncomp)} component(s)'))
-    return grid, panels
-
-
 def cmd_render(a):
     import numpy as np  # pylint: disable=import-outside-toplevel
 
@@ -77,6 +46,8 @@ def cmd_render(a):
 
     _, maze = envs.parse_name(a.env)
     if a.deltas:
+        from aqm_mjx.agent.oracle import keypoint_map_panels  # pylint: disable=import-outside-toplevel
+
         grid, panels = keypoint_map_panels(maze, a.deltas)
         render_panels(grid, panels, a.out)
         for p in panels:
@@ -153,7 +124,7 @@ def cmd_rollouts(a):
 def cmd_collect(a):
     """Collect an OGBench-format dataset in MJX with the scripted expert."""
     _enable_compile_cache()
-    from aqm_mjx import collect  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
 
     collect.check_output(a.out, a.overwrite)  # before minutes of collection, not after
     cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
@@ -174,13 +145,25 @@ def cmd_collect(a):
     return 0
 
 
-def cmd_train(a):
-    """Train the quasimetric and the policies on an OGBench-format dataset."""
-    _enable_compile_cache()
-    from aqm_mjx import dataset, envs, train  # pylint: disable=import-outside-toplevel
+def cmd_methods(a):
+    del a
+    from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
 
+    for m in methods.METHODS.values():
+        print(f'{m.name:<10} {m.summary}')
+    return 0
+
+
+def cmd_train(a):
+    """Train a method on an OGBench-format dataset."""
+    _enable_compile_cache()
+    from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.data import dataset  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import fit, methods  # pylint: disable=import-outside-toplevel
+
+    method = methods.get(a.method)
     try:
-        inferred, style = train.infer_env(a.dataset)
+        inferred, style = dataset.infer_env(a.dataset)
     except ValueError:
         if a.env is None and not a.resume:
             raise
@@ -194,30 +177,41 @@ def cmd_train(a):
         over = {'env': env_name, 'seed': a.seed}
         if style == 'explore':
             over['policy_goals'] = 'random'  # AQM: uniform random goals on explore datasets
-        cfg = train.TrainConfig.preset(a.preset, **over).with_overrides(a.set or [])
+        cfg = method.preset(a.preset, **over).with_overrides([s[len('train.'):] if s.startswith('train.') else s
+                                                               for s in a.set or []])
     data = dataset.read_ogbench(a.dataset, obs_size=obs_size, action_size=action_size, add_info=False)
     print(f'dataset {a.dataset}: {len(data["terminals"])} states, {int(data["terminals"].sum())} trajectories')
     if cfg is not None:
-        print(f'preset {cfg.preset}: {cfg.steps} updates of batch {cfg.batch_size}, quasimetric {cfg.q_hidden} -> '
-              f'{cfg.n_components}x{cfg.component_size}, policies {cfg.pi_hidden}, objective {cfg.objective}, '
-              f'push offset {cfg.offset}')
-    train.train(cfg, data, a.out, resume=a.resume, steps=a.steps, dataset_path=os.path.abspath(a.dataset))
+        print(f'{method.name}, preset {cfg.preset}: {cfg.steps} updates of batch {cfg.batch_size}')
+    fit.train(method, cfg, data, a.out, resume=a.resume, steps=a.steps, dataset_path=os.path.abspath(a.dataset))
     print(f'wrote {a.out} (config.json, metrics.jsonl, checkpoints/)')
     return 0
 
 
-def _given(**options) -> dict:
-    """The options the user set (``None``: not given, so the config class's default applies)."""
-    return {k: v for k, v in options.items() if v is not None}
+def _section_options(p: argparse.ArgumentParser) -> None:
+    """One option per field of the map, agent and protocol configs (``--max-keypoints``), taken as
+    text and parsed by the config: unset options keep the preset's value."""
+    from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
+
+    classes = {s: type(getattr(pipeline.RunConfig(), s)) for s in pipeline.SECTIONS}
+    for section, cls in classes.items():
+        g = p.add_argument_group(f'{section} ({cls.__name__}; default: the preset\'s)')
+        for f in dataclasses.fields(cls):
+            kw = dict(dest=f'{section}.{f.name}', default=None, help=f.metadata.get('help', ''))
+            if f.metadata.get('choices'):
+                kw['choices'] = list(f.metadata['choices'])
+            if isinstance(f.default, tuple):
+                kw['nargs'] = '*'
+            g.add_argument('--' + f.name.replace('_', '-'), **kw)
 
 
-def _run_config(a):
-    from aqm_mjx import evaluate, pipeline, train  # pylint: disable=import-outside-toplevel
-
-    tcfg = train.TrainConfig.preset(a.preset, env=a.env, seed=a.seed).with_overrides(a.set or [])
-    ecfg = evaluate.EvalConfig(episodes=a.eval_episodes, steps=a.eval_steps, envs=a.envs, seed=a.seed,
-                               **_given(delta=a.delta))
-    return pipeline.RunConfig(train=tcfg, eval=ecfg)
+def _overrides(a) -> list:
+    """``--set`` pairs, then the section options the user gave, as ``section.field=text``."""
+    out = list(a.set or [])
+    for k, v in vars(a).items():
+        if '.' in k and v is not None:
+            out.append(f'{k}={",".join(v) if isinstance(v, list) else v}')
+    return out
 
 
 def cmd_run(a):
@@ -225,27 +219,24 @@ def cmd_run(a):
     _enable_compile_cache()
     import jax  # pylint: disable=import-outside-toplevel
 
-    from aqm_mjx import dataset, envs, pipeline  # pylint: disable=import-outside-toplevel
-    from aqm_mjx.checkpoint import write_json  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import envs, files, pipeline, run  # pylint: disable=import-outside-toplevel
 
     envs.parse_name(a.env)
-    cfg = _run_config(a)
+    cfg = pipeline.RunConfig.preset(a.preset, method=a.method, env=a.env, seed=a.seed).with_overrides(_overrides(a))
     out = a.out or os.path.join('runs', a.env)
-    print(f'aqm-mjx run: {a.env}, {cfg.train.preset} preset ({cfg.train.steps} updates of batch '
-          f'{cfg.train.batch_size}), {cfg.eval.episodes} evaluation episodes per task, on {jax.devices()[0]}; '
+    print(f'aqm-mjx run: {a.env}, {cfg.method} {cfg.train.preset} preset ({cfg.train.steps} updates of batch '
+          f'{cfg.train.batch_size}), {cfg.protocol.episodes} evaluation episodes per task, on {jax.devices()[0]}; '
           f'output in {out}')
     if not a.one_program:
-        pipeline.run_stepwise(cfg, a.env, out, dataset=a.dataset, episodes=a.episodes, collect_batch=a.collect_batch,
-                              seed=a.seed, shift=a.shift)
+        run.run_stepwise(cfg, out, dataset=a.dataset, collect_episodes=a.collect_episodes,
+                         collect_batch=a.collect_batch, shift=a.shift)
         return 0
     if a.shift != 'base':
         raise ValueError('--one-program evaluates the base layout; drop --shift')
-    path = pipeline.data_stage(a.env, out, a.dataset, a.episodes, a.collect_batch)
-    env = envs.make(a.env)
-    data = dataset.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
-    res = pipeline.run_one_program(cfg, a.env, data, a.seeds, a.seed)
-    os.makedirs(out, exist_ok=True)
-    write_json(os.path.join(out, 'one_program.json'), res)
+    path = run.data_stage(a.env, out, a.dataset, a.collect_episodes, a.collect_batch)
+    data = run.read_data(path, envs.make(a.env))
+    res = run.run_one_program(cfg, data, a.seeds)
+    files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
     print(f'wrote {out}/one_program.json')
     return 0
 
@@ -257,44 +248,52 @@ def cmd_evaluate(a):
 
         jax.distributed.initialize()  # before any other JAX call: every host runs this same command
     _enable_compile_cache()
-    from aqm_mjx import evaluate  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import pipeline, run  # pylint: disable=import-outside-toplevel
 
-    cfg = evaluate.EvalConfig(episodes=a.episodes, tasks=tuple(a.tasks or ()), steps=a.steps, envs=a.envs,
-                              ablations=tuple(a.ablations), tau=a.tau, max_keypoints=a.max_keypoints,
-                              candidates=a.candidates, selector=a.selector, seed=a.seed,
-                              **_given(kappa=a.kappa, delta=a.delta, switch_radius=a.switch_radius))
-    evaluate.run_cli(a.checkpoint, cfg, dataset=a.dataset, shift=a.shift, out=a.out)
+    overrides = _overrides(a)
+    if any(o.startswith('train.') for o in overrides):
+        raise ValueError('evaluate: the train settings are the checkpoint\'s; --set takes map., agent. and '
+                         'protocol. fields here')
+    cfg = None if a.preset is None else pipeline.RunConfig.preset(a.preset)
+    run.evaluate_checkpoint(a.checkpoint, cfg, dataset=a.dataset, shift=a.shift, out=a.out, seed=a.seed,
+                            overrides=overrides)
     return 0
 
 
+
 def main(argv=None):
+    from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
+
+    presets = list(pipeline.PRESETS)
     p = argparse.ArgumentParser(prog='aqm-mjx', description='Adaptive Quasimetric Mapping on MuJoCo MJX.')
     sub = p.add_subparsers(dest='cmd', required=True)
     r = sub.add_parser(
         'run', help='the whole pipeline: collect (or --dataset) -> train -> keypoints -> evaluate',
-        description='Collect a navigate dataset in MJX (or use --dataset), train the quasimetric and policies, '
-                    'select keypoints, and evaluate AQM and its ablations with OGBench\'s protocol. Each stage '
-                    'shows its progress; training checkpoints, so re-running the same command after an interrupt '
-                    'resumes. Writes OUT/summary.json and OUT/eval/*.png. --one-program runs training, keypoints '
+        description='Collect a navigate dataset in MJX (or use --dataset), train a method, select keypoints, and '
+                    'evaluate AQM and its ablations with OGBench\'s protocol. Each stage shows its progress; '
+                    'training checkpoints, so re-running the same command after an interrupt resumes. Writes '
+                    'OUT/run.json, OUT/summary.json and OUT/eval/*.png. --one-program runs training, keypoints '
                     'and evaluation as one jitted program, vmapped over --seeds.')
     r.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
+    r.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
+    r.add_argument('--preset', default='cpu', choices=presets,
+                   help='every default of the run: cpu (minutes on a 2-core CPU), paper (the paper\'s sizes; for a '
+                        'GPU), ci (seconds; tests)')
+    r.add_argument('--set', action='append', metavar='SECTION.FIELD=VALUE',
+                   help='override any config field, e.g. --set train.batch_size=512 --set map.delta=10 (a field '
+                        'name alone where it is unique: --set steps=400); repeatable')
     r.add_argument('--out', default=None, help='run folder (default runs/ENV)')
     r.add_argument('--dataset', default=None, help='an OGBench-format .npz to train on instead of collecting')
-    r.add_argument('--episodes', type=int, default=100, help='navigate episodes to collect (1001 states each)')
+    r.add_argument('--collect-episodes', type=int, default=100, help='navigate episodes to collect (1001 states each)')
     r.add_argument('--collect-batch', type=int, default=55,
                    help='episodes collected side by side (default: the 100 + 10 of the default run in 2 calls)')
-    r.add_argument('--preset', default='cpu', choices=['cpu', 'paper', 'tiny'],
-                   help='training scale: cpu (minutes on a 2-core CPU), paper (Appendix 10; for a GPU), tiny')
-    r.add_argument('--set', action='append', metavar='KEY=VALUE', help='override a training config field')
-    r.add_argument('--eval-episodes', type=int, default=4, help='evaluation episodes per task (OGBench: 50)')
-    r.add_argument('--eval-steps', type=int, default=0, help='control steps per evaluation episode (0: env limit)')
-    r.add_argument('--envs', type=int, default=64, help='environments per jitted evaluation call')
-    r.add_argument('--delta', type=float, default=None, help="IWE repel radius (quasimetric units; default: EvalConfig's)")
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
-    r.add_argument('--seed', type=int, default=0)
+    r.add_argument('--seed', type=int, default=0, help='run seed: PRNGKey(seed) is split into train, map, evaluation')
     r.add_argument('--one-program', action='store_true',
                    help='train, select keypoints and evaluate as one jitted program (no checkpoints)')
     r.add_argument('--seeds', type=int, default=1, help='with --one-program: seeds vmapped in the one program')
+    _section_options(r)
     r.set_defaults(fn=cmd_run)
     o = sub.add_parser('rollouts', help='random-action MJX rollouts and a picture (the environments alone)')
     o.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
@@ -305,6 +304,8 @@ def main(argv=None):
     o.set_defaults(fn=cmd_rollouts)
     e = sub.add_parser('envs', help='list the environments and their evaluation tasks')
     e.set_defaults(fn=cmd_envs)
+    m = sub.add_parser('methods', help='list the registered methods')
+    m.set_defaults(fn=cmd_methods)
     d = sub.add_parser('render', help='draw a maze with its evaluation tasks (or keypoint maps) as a PNG')
     d.add_argument('--env', default='antmaze-medium')
     d.add_argument('--out', default='maze.png')
@@ -336,18 +337,19 @@ def main(argv=None):
     c.add_argument('--out', required=True, help='output .npz (the -val twin, .png and .json go beside it)')
     c.add_argument('--overwrite', action='store_true', help='replace existing output files')
     c.set_defaults(fn=cmd_collect)
-    t = sub.add_parser('train', help='train the quasimetric and the policies on a dataset (Orbax checkpoints)',
-                       description='Train AQM\'s quasimetric (IQE + QRL) and policies (Q-AWR target, Q-SAW main) '
-                                   'on an OGBench-format .npz. Writes OUT/config.json, OUT/metrics.jsonl (JSON lines) '
-                                   'and Orbax checkpoints in OUT/checkpoints.')
+    t = sub.add_parser('train', help='train a method on a dataset (Orbax checkpoints)',
+                       description='Train a registered method (default AQM: quasimetric IQE + QRL, Q-AWR target and '
+                                   'Q-SAW main policies) on an OGBench-format .npz. Writes OUT/config.json, '
+                                   'OUT/metrics.jsonl (JSON lines) and Orbax checkpoints in OUT/checkpoints.')
     t.add_argument('--dataset', required=True, help='OGBench .npz (e.g. antmaze-large-navigate-v0.npz)')
     t.add_argument('--env', default=None,
                    help='environment; inferred from a file name such as antmaze-large-navigate-v0.npz when omitted')
-    t.add_argument('--preset', default='cpu', choices=['cpu', 'paper', 'tiny'],
+    t.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
+    t.add_argument('--preset', default='cpu', choices=presets,
                    help='cpu: minutes on a 2-core CPU; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
-                        'tiny: smoke tests')
-    t.add_argument('--set', action='append', metavar='KEY=VALUE',
-                   help='override a config field, e.g. --set batch_size=512 --set q_hidden=512,512 (repeatable)')
+                        'ci: smoke tests')
+    t.add_argument('--set', action='append', metavar='FIELD=VALUE',
+                   help='override a training config field, e.g. --set batch_size=512 --set q_hidden=512,512 (repeatable)')
     t.add_argument('--steps', type=int, default=None, help='total updates (overrides the preset; extends a resumed run)')
     t.add_argument('--seed', type=int, default=0)
     t.add_argument('--out', required=True, help='run folder')
@@ -358,30 +360,23 @@ def main(argv=None):
         'evaluate', help='evaluate a trained model: OGBench protocol, ablations and shifts in one batch',
         description='OGBench protocol: every task, --episodes each, deterministic actions clipped to [-1, 1], '
                     'success at the last step. The AQM agent, its ablations and every shifted layout run as rows '
-                    'of one batch, --envs environments per jitted call, sharded over all devices. Writes '
+                    'of one batch, --envs environments per jitted call, sharded over all devices. Defaults: the '
+                    'run preset of the checkpoint\'s training preset (--preset to choose another). Writes '
                     'OUT/results.json, success.png, trajectories.png and, with several layouts, heatmap.png.')
-    v.add_argument('--checkpoint', required=True, help='run folder written by `aqm-mjx train`')
+    v.add_argument('--checkpoint', required=True, help='run folder written by `aqm-mjx train` (or RUN/train)')
     v.add_argument('--dataset', default=None, help='states to select keypoints from (default: the training dataset)')
-    v.add_argument('--envs', type=int, default=1024, help='environments per jitted call (GPU: thousands)')
-    v.add_argument('--episodes', type=int, default=50, help='episodes per task, agent and layout (OGBench: 50)')
-    v.add_argument('--tasks', type=int, nargs='*', default=None, help='task ids (default: all five)')
-    v.add_argument('--steps', type=int, default=0, help='control steps per episode (default: the env limit, 1000)')
     v.add_argument('--shift', default='base',
                    help="layout: 'base', 'all' (the maze's shift suite), or one variant such as close-3-3")
-    v.add_argument('--kappa', type=float, default=None, help="budget slack of the AQM agent (default: EvalConfig's)")
-    v.add_argument('--ablations', nargs='*', default=['no-pruning', 'flat'],
-                   help="extra agents in the same batch: no-pruning, flat, kappa=X (none: pass the flag empty)")
-    v.add_argument('--delta', type=float, default=None, help="IWE repel radius (quasimetric units; default: EvalConfig's)")
-    v.add_argument('--tau', type=float, default=0.0, help='edge and attachment radius (default 2 delta)')
-    v.add_argument('--switch-radius', type=float, default=None,
-                   help="d(s, z) at which a keypoint counts as reached (default: EvalConfig's)")
-    v.add_argument('--max-keypoints', type=int, default=256)
-    v.add_argument('--candidates', type=int, default=10_000, help='dataset states encoded as IWE candidates')
-    v.add_argument('--selector', default='iwe', choices=['iwe', 'fps', 'random'])
-    v.add_argument('--seed', type=int, default=0)
+    v.add_argument('--preset', default=None, choices=presets,
+                   help="map, agent and protocol defaults (default: the checkpoint's training preset)")
+    v.add_argument('--set', action='append', metavar='SECTION.FIELD=VALUE',
+                   help='override a map, agent or protocol field, e.g. --set agent.kappa=0.5 (repeatable)')
+    v.add_argument('--seed', type=int, default=0,
+                   help='PRNGKey(seed) split as in `aqm-mjx run`: the same seed gives the same map and episodes')
     v.add_argument('--out', default=None, help='output folder (default CHECKPOINT/eval)')
     v.add_argument('--distributed', action='store_true',
                    help='multi-host: call jax.distributed.initialize() first (run the same command on every host)')
+    _section_options(v)
     v.set_defaults(fn=cmd_evaluate)
     a = p.parse_args(argv)
     try:

@@ -29,3 +29,48 @@ def test_keypoint_maps_picture(tmp_path, capsys):
     assert cli.main(['render', '--env', 'antmaze-medium', '--deltas', '4', '8', '--out', str(png)]) == 0
     out = capsys.readouterr().out
     assert out.count('1 component(s)') == 2 and png.stat().st_size > 10000
+
+
+def test_section_options_come_from_the_config_fields(capsys):
+    """Every map, agent and protocol field is an option of run and evaluate, with the field's help;
+    no default is typed in the parser (unset options are None and keep the preset's value)."""
+    import dataclasses
+
+    import pytest
+
+    from aqm_mjx import pipeline
+
+    for cmd in ('run', 'evaluate'):
+        with pytest.raises(SystemExit):
+            cli.main([cmd, '--help'])
+        text = ' '.join(capsys.readouterr().out.split())
+        for section in pipeline.SECTIONS:
+            for f in dataclasses.fields(type(getattr(pipeline.RunConfig(), section))):
+                assert '--' + f.name.replace('_', '-') in text, (cmd, f.name)
+                assert ' '.join(f.metadata['help'].split())[:30] in text, (cmd, f.name)
+
+
+def test_run_config_overrides_name_the_problem():
+    import pytest
+
+    from aqm_mjx import pipeline
+
+    cfg = pipeline.RunConfig.preset('cpu')
+    new = cfg.with_overrides(['map.delta=12', 'steps=1000', 'agent.kappa=inf', 'protocol.tasks=1,3',
+                              'train.q_hidden=64,64', 'protocol.ablations='])
+    assert (new.map.delta, new.train.steps, new.agent.kappa, new.protocol.tasks) == (12.0, 1000, float('inf'), (1, 3))
+    assert new.train.q_hidden == (64, 64) and new.protocol.ablations == () and new.map.candidates == cfg.map.candidates
+    assert pipeline.RunConfig.from_dict(new.to_dict()) == new
+    for bad, msg in (('delta=1', None), ('sections.x=1', "unknown section 'sections'"),
+                     ('map.radius=3', "unknown MapConfig field 'radius'"),
+                     ('train.batch_size=abc', r"AQMConfig.batch_size \(int\): cannot read 'abc'"),
+                     ('agent.replan_slots=-1', 'replan_slots must be an integer >= 0'),
+                     ('nothing=1', "no section has a field 'nothing'"), ('map.delta', 'not of the form key=value')):
+        if msg is None:
+            assert cfg.with_overrides([bad]).map.delta == 1.0  # 'delta' is unique to the map section
+            continue
+        with pytest.raises(ValueError, match=msg):
+            cfg.with_overrides([bad])
+    # presets hold the paper's evaluation defaults for a paper run
+    paper = pipeline.RunConfig.preset('paper')
+    assert 10 <= paper.map.delta <= 25 and paper.train.batch_size == 1024 and paper.protocol.episodes == 50

@@ -8,8 +8,9 @@ import pytest
 from ogbench.utils import load_dataset
 from scipy.sparse.csgraph import shortest_path
 
-from aqm_mjx import cli, collect, envs
-from aqm_mjx import dataset as dsm
+from aqm_mjx import cli, envs
+from aqm_mjx.data import collect
+from aqm_mjx.data import dataset as dsm
 from aqm_mjx.envs import mazes
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from ogbench.utils import load_dataset
 
-from aqm_mjx import dataset as dsm
+from aqm_mjx.data import dataset as dsm
 
 
 def fake_raw(n_traj=6, length=40, obs=29, act=8, seed=0, with_info=True):

@@ -289,7 +289,7 @@ def test_one_control_step_parity_with_ogbench(ant):
     states, actions, nxt, grid = _states_near_walls(300, seed=0)
     qpos = jnp.asarray(np.array([s[0] for s in states]), jnp.float32)
     qvel = jnp.asarray(np.array([s[1] for s in states]), jnp.float32)
-    data = jax.vmap(env._set)(qpos, qvel)
+    data = jax.vmap(env.set_state)(qpos, qvel)
     out = pstep(data, jnp.asarray(actions, jnp.float32), jnp.broadcast_to(jnp.asarray(grid, jnp.int8), (300,) + grid.shape))
     err = np.max(np.abs(np.asarray(out.qpos) - nxt), axis=-1)
     near = wall_distance(np.array([s[0][:2] for s in states]), grid) < 1.3

@@ -1,5 +1,6 @@
 """The evaluation protocol: shift suites, the episode table, chunk- and device-invariance, the CLI."""
 
+import dataclasses
 import json
 
 import jax
@@ -7,8 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from aqm_mjx import cli, envs, evaluate, rollout, synthetic, train
+from aqm_mjx import cli, envs, pipeline
+from aqm_mjx.agent import oracle
+from aqm_mjx.agent.rules import MAX_CUTS, AgentConfig
+from aqm_mjx.data import synthetic
 from aqm_mjx.envs import mazes, shifts
+from aqm_mjx.evaluation import evaluate, protocol
+from aqm_mjx.learn import fit
+from aqm_mjx.mapping.build import MapConfig, build_map
 
 
 # ------------------------------------------------------------------------------------------ shifts
@@ -50,29 +57,45 @@ def test_medium_shift_by_hand():
 
 # ------------------------------------------------------------------------------------ the table
 def test_config_and_episode_table():
-    cfg = evaluate.EvalConfig(ablations=('no-pruning', 'flat', 'kappa=1'))
-    specs = evaluate.agent_specs(cfg)
+    specs = protocol.agent_specs(0.5, ('no-pruning', 'flat', 'kappa=1'))
     assert [s[0] for s in specs] == ['aqm', 'no-pruning', 'flat', 'kappa=1']
-    assert specs[1][1] == np.inf and specs[2][2] is False and specs[3][1] == 1.0
-    t = evaluate.episode_table(specs, 2, [1, 3], 5)
+    assert specs[0][1] == 0.5 and specs[1][1] == np.inf and specs[2][2] is False and specs[3][1] == 1.0
+    t = protocol.episode_table(specs, 2, [1, 3], 5)
     assert len(t.task) == 4 * 2 * 2 * 5
     # every agent gets the same episodes (same key ids), and (variant, task, episode) ids are distinct
     ids = t.seed_id.reshape(4, -1)
     assert (ids == ids[0]).all() and len(set(ids[0].tolist())) == 2 * 2 * 5
+    # groups are the cells of the [agents, layouts, tasks] rate table, 5 episodes each
+    assert np.bincount(t.group).tolist() == [5] * (4 * 2 * 2) and t.group[5 * 3] == 3
     for bad, msg in ((dict(ablations=('greedy',)), 'unknown ablation'), (dict(ablations=('kappa=x',)), 'number'),
-                     (dict(episodes=0), 'episodes'), (dict(selector='kmeans'), 'selector'),
-                     (dict(ablations=('flat', 'flat')), 'repeat')):
+                     (dict(episodes=0), 'episodes'), (dict(ablations=('flat', 'flat')), 'repeat'),
+                     (dict(horizon=-1), 'horizon')):
         with pytest.raises(ValueError, match=msg):
-            evaluate.EvalConfig(**bad)
+            protocol.ProtocolConfig(**bad)
+    with pytest.raises(ValueError, match='selector'):
+        MapConfig(selector='kmeans')
+
+
+def test_success_rates_by_hand():
+    """The one aggregation (on device): 2 agents x 1 layout x 2 tasks x 2 episodes."""
+    env = envs.make('pointmaze-medium')
+    eps = protocol.plan_episodes(env, protocol.ProtocolConfig(episodes=2, tasks=(1, 4), ablations=('flat',)), 1.0)
+    success = np.array([1, 1, 0, 1, 0, 0, 1, 0], bool)  # aqm task 1, aqm task 4, flat task 1, flat task 4
+    pruned = np.array([0, 2, 4, 6, 0, 0, 0, 0])
+    rates, prunes = jax.jit(lambda s, p: protocol.success_rates(eps, s, p))(success, pruned)
+    np.testing.assert_allclose(rates, [[[1.0, 0.5]], [[0.0, 0.5]]])
+    np.testing.assert_allclose(prunes, [[3.0], [0.0]])
+    summary = protocol.format_summary(rates, eps.agents, list(eps.variants), eps.task_ids, prunes)
+    assert summary['aqm']['base'] == {'task_1': 1.0, 'task_4': 0.5, 'mean': 0.75, 'pruned_mean': 3.0}
 
 
 # --------------------------------------------------------------- the protocol without learning
 def exact_point_agent(base):
     """The exact maze distance and a BFS-steering point controller (no learning)."""
     env = envs.make('pointmaze-medium')
-    agent, graph, match = evaluate.oracle_agent(env, base, delta=4.0, speed=0.15)
-    cfg = evaluate.EvalConfig(episodes=2, tasks=(1, 4), steps=400, ablations=('no-pruning', 'flat'), **match)
-    return env, agent, graph, cfg
+    agent, graph, match = oracle.oracle_agent(env, base, delta=4.0, speed=0.15)
+    proto = protocol.ProtocolConfig(episodes=2, tasks=(1, 4), horizon=400, ablations=('no-pruning', 'flat'))
+    return env, agent, graph, AgentConfig(**match), proto
 
 
 def closed_5_3(base):
@@ -84,10 +107,10 @@ def closed_5_3(base):
 
 def test_protocol_results_do_not_depend_on_chunking():
     base = mazes.layout('medium')
-    env, agent, graph, cfg = exact_point_agent(base)
+    env, agent, graph, cfg, proto = exact_point_agent(base)
     variants = {'base': base, 'close-5-3': closed_5_3(base)}
-    a = evaluate.evaluate(env, agent, graph, cfg.__class__(**{**cfg.__dict__, 'envs': 7}), variants, progress=False)
-    b = evaluate.evaluate(env, agent, graph, cfg.__class__(**{**cfg.__dict__, 'envs': 24}), variants, progress=False)
+    a = evaluate.evaluate(env, agent, graph, cfg, dataclasses.replace(proto, envs=7), variants, progress=False)
+    b = evaluate.evaluate(env, agent, graph, cfg, dataclasses.replace(proto, envs=24), variants, progress=False)
     assert a.timing['chunks'] == 4 and b.timing['chunks'] == 1  # 3 agents x 2 layouts x 2 tasks x 2 = 24
     np.testing.assert_array_equal(a.success, b.success)
     np.testing.assert_array_equal(a.pruned, b.pruned)
@@ -104,7 +127,7 @@ def test_protocol_results_do_not_depend_on_chunking():
     # task 4 with (5, 3) closed: the pruning agent reroutes, the non-pruning one does not get there
     assert a.summary['aqm']['close-5-3']['task_4'] == 1.0 and a.summary['no-pruning']['close-5-3']['task_4'] == 0.0
     tr = a.traces[('aqm', 'close-5-3', 4)]
-    assert 1 <= len(tr['cuts']) <= min(tr['pruned'], rollout.MAX_CUTS) and tr["xy"].shape == (400, 2)
+    assert 1 <= len(tr['cuts']) <= min(tr['pruned'], MAX_CUTS) and tr["xy"].shape == (400, 2)
 
 
 SHARD_SCRIPT = r'''
@@ -112,16 +135,16 @@ import os, sys, json
 import jax, numpy as np
 sys.path.insert(0, os.path.dirname(sys.argv[1]))
 from test_evaluate import exact_point_agent, closed_5_3
-from aqm_mjx import evaluate
+from aqm_mjx.evaluation import evaluate
 from aqm_mjx.envs import mazes, shifts
 assert jax.device_count() == 2, jax.devices()
 base = mazes.layout('medium')
-env, agent, graph, cfg = exact_point_agent(base)
+env, agent, graph, cfg, proto = exact_point_agent(base)
 variants = {'base': base, 'close-5-3': closed_5_3(base)}
 out = {}
 for n in (1, 2):
     mesh = evaluate.device_mesh(jax.devices()[:n])
-    r = evaluate.evaluate(env, agent, graph, cfg, variants, mesh=mesh, progress=False)
+    r = evaluate.evaluate(env, agent, graph, cfg, proto, variants, mesh=mesh, progress=False)
     xy = np.stack([r.traces[k]['xy'] for k in sorted(r.traces)])
     out[n] = (r.success, r.pruned, xy, r.timing['devices'])
 assert out[1][3] == 1 and out[2][3] == 2
@@ -143,16 +166,15 @@ def tiny_point_run(tmp_path):
     path = tmp_path / 'pointmaze-medium-navigate.npz'
     np.savez(path, **data)
     out = tmp_path / 'run'
-    assert cli.main(['train', '--dataset', str(path), '--preset', 'tiny', '--steps', '100', '--out', str(out)]) == 0
+    assert cli.main(['train', '--dataset', str(path), '--preset', 'ci', '--steps', '100', '--out', str(out)]) == 0
     return out, path, obs
 
 
 def test_learned_agent_map_and_cli(tmp_path, capsys):
     out, path, obs = tiny_point_run(tmp_path)
-    trained = train.load(str(out))
-    agent = evaluate.learned_agent(trained)
-    cfg = evaluate.EvalConfig(delta=1.0, max_keypoints=16, candidates=500)
-    graph, kp = evaluate.build_map(agent, jnp.asarray(obs), cfg, jax.random.PRNGKey(0))
+    agent = fit.load(str(out)).agent
+    graph, kp = build_map(agent, jnp.asarray(obs), MapConfig(delta=1.0, max_keypoints=16, candidates=500),
+                          jax.random.PRNGKey(0))
     k = int(kp.count)
     assert 1 <= k <= 16 and int(graph.mask.sum()) == k
     # keypoint observations are dataset states, their latents the encoder's
@@ -161,17 +183,20 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
     np.testing.assert_allclose(graph.z[:k], jax.vmap(lambda o: agent.encode(agent.aux, o))(graph.obs[:k]), atol=1e-5)
     # the CLI: base plus the shift suite, every agent, one episode each, 60 steps
     ev = tmp_path / 'eval'
-    argv = ['evaluate', '--checkpoint', str(out), '--episodes', '1', '--steps', '60', '--shift', 'all',
-            '--delta', '1', '--max-keypoints', '16', '--envs', '32', '--out', str(ev)]
+    argv = ['evaluate', '--checkpoint', str(out), '--episodes', '1', '--horizon', '60', '--shift', 'all',
+            '--delta', '1', '--max-keypoints', '16', '--envs', '32', '--set', 'agent.kappa=0.5', '--out', str(ev)]
     assert cli.main(argv) == 0
     res = json.loads((ev / 'results.json').read_text())
     assert res['agents'] == ['aqm', 'no-pruning', 'flat'] and res['variants'][0] == 'base'
     assert res['variants'] == list(shifts.suite('medium')) and 1 <= res['keypoints'] <= 16
     assert res['timing']['chunks'] == -(-3 * len(res['variants']) * 5 // 32)
-    # options not given take EvalConfig's defaults; given ones win
-    defaults = evaluate.EvalConfig()
-    assert (res['config']['kappa'], res['config']['switch_radius']) == (defaults.kappa, defaults.switch_radius)
-    assert res['config']['delta'] == 1.0
+    # options not given take the preset of the checkpoint's training preset (ci); given ones win
+    ci = pipeline.RunConfig.preset('ci')
+    assert res['config']['agent']['switch_radius'] == ci.agent.switch_radius
+    assert res['config']['map']['candidates'] == ci.map.candidates and res['config']['protocol']['ablations'] == [
+        'no-pruning', 'flat']
+    assert res['config']['map']['delta'] == 1.0 and res['config']['agent']['kappa'] == 0.5
+    assert res['method'] == 'aqm' and res['config']['train']['preset'] == 'ci'
     for png in ('success.png', 'trajectories.png', 'heatmap.png'):
         assert (ev / png).read_bytes()[:4] == b'\x89PNG'
     assert 'aqm / base' in capsys.readouterr().out

@@ -7,7 +7,7 @@ import numpy as np
 import ogbench  # noqa: F401
 import pytest
 
-from aqm_mjx import expert
+from aqm_mjx.data import expert
 from aqm_mjx.envs import mazes
 
 

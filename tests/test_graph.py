@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.sparse.csgraph import floyd_warshall as scipy_fw
 
-from aqm_mjx import graph, keypoints, plan
+from aqm_mjx.agent import plan
+from aqm_mjx.mapping import graph, keypoints
 from aqm_mjx.envs import mazes
 
 
@@ -197,7 +198,8 @@ def test_maze_graph_connected_at_two_delta(maze):
 
 def test_pad_and_trim_are_inverse_and_padding_is_inert():
     w = jnp.array([[0.0, 2.0, jnp.inf], [1.0, 0.0, 3.0], [jnp.inf, jnp.inf, 0.0]])
-    g = graph.Graph(z=jnp.arange(6.0).reshape(3, 2), obs=jnp.ones((3, 4)), mask=jnp.array([True, True, False]), w=w)
+    g = graph.Graph(z=jnp.arange(6.0).reshape(3, 2), obs=jnp.ones((3, 4)), mask=jnp.array([True, True, False]), w=w,
+                    tau=jnp.float32(2.0))
     p = graph.pad(g, 5)
     assert p.mask.tolist() == [True, True, False, False, False] and p.z.shape == (5, 2) and p.obs.shape == (5, 4)
     np.testing.assert_array_equal(p.w[:3, :3], w)
@@ -209,3 +211,22 @@ def test_pad_and_trim_are_inverse_and_padding_is_inert():
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match='cannot pad'):
         graph.pad(g, 2)
+
+
+def test_map_stage_selects_with_every_selector_including_the_papers_batches():
+    from aqm_mjx.mapping.build import MapConfig, keypoint_graph
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 20, (3000, 2)).astype(np.float32)
+    d = lambda x, y: jnp.linalg.norm(x - y)  # noqa: E731
+    lat = jnp.asarray(pts)
+    for sel in ('iwe', 'iwe-batches', 'fps', 'random'):
+        cfg = MapConfig(delta=3.0, max_keypoints=128, selector=sel, iwe_batches=4, iwe_batch_size=256)
+        g, kp = jax.jit(lambda l, k: keypoint_graph(d, l, l, k, cfg))(lat, jax.random.PRNGKey(1))
+        k = int(kp.count)
+        assert 1 < k <= 128 and float(g.tau) == 6.0
+        # keypoints are candidates (indices into the latents), joined under tau = 2 delta
+        np.testing.assert_array_equal(np.asarray(g.z)[:k], pts[np.asarray(kp.index)[:k]])
+        if sel == 'iwe-batches':  # the paper's procedure: the best of 4 IWE runs on 256-state batches
+            want = keypoints.iwe_best_of_batches(d, lat, jax.random.PRNGKey(1), 3.0, 128, 4, 256)
+            assert int(want.count) == k and np.array_equal(want.index, kp.index)

@@ -6,8 +6,12 @@ import jax
 import numpy as np
 import pytest
 
-from aqm_mjx import dataset as ds_io
-from aqm_mjx import envs, evaluate, pipeline, synthetic, train
+from aqm_mjx import envs, pipeline
+from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.data import synthetic
+from aqm_mjx.evaluation import evaluate
+from aqm_mjx.learn import fit
+from aqm_mjx.mapping.build import build_map
 
 
 def assert_params_close(a, b):
@@ -22,12 +26,11 @@ def assert_params_close(a, b):
 
 
 def tiny_config():
-    return pipeline.RunConfig(
-        train=train.TrainConfig.preset('tiny', env='pointmaze-medium', steps=100, updates_per_call=50, log_every=50,
-                                       checkpoint_every=50),
-        # kappa 0 and a switch radius that the start states fall within: budgets are overrun and edges pruned
-        eval=evaluate.EvalConfig(episodes=2, tasks=(1, 2), steps=60, delta=0.5, max_keypoints=32, candidates=400,
-                                 switch_radius=0.6, kappa=0.0, ablations=('flat',)))
+    # the ci preset: kappa 0 and a switch radius that the start states fall within, so budgets are
+    # overrun and edges pruned
+    return pipeline.RunConfig.preset('ci', env='pointmaze-medium').with_overrides(
+        ['train.steps=100', 'train.updates_per_call=50', 'train.log_every=50', 'train.checkpoint_every=50',
+         'protocol.tasks=1,2', 'protocol.ablations=flat'])
 
 
 def test_one_program_equals_the_step_by_step_path(tmp_path):
@@ -40,14 +43,17 @@ def test_one_program_equals_the_step_by_step_path(tmp_path):
     out = jax.device_get(jax.jit(run)(key, ds))
     # step by step: the host training loop with its checkpoints, then the map, then the chunked evaluation
     k_train, k_map, k_eval = pipeline.stage_keys(key)
-    state = train.train(cfg.train, data, str(tmp_path / 'run'), key=k_train, progress=False, log=lambda *_: None)
-    trained = train.load(str(tmp_path / 'run'), log=lambda *_: None)
-    agent = evaluate.learned_agent(trained)
-    graph, kp = evaluate.build_map(agent, ds.observations, cfg.eval, k_map)
-    res = evaluate.evaluate(env, agent, graph, cfg.eval.__class__(**{**cfg.eval.__dict__, 'envs': 5}),
+    trained = fit.train('aqm', cfg.train, data, str(tmp_path / 'run'), key=k_train, progress=False,
+                        log=lambda *_: None)
+    loaded = fit.load(str(tmp_path / 'run'), log=lambda *_: None)  # what is on disk is what was in memory
+    for x, y in zip(jax.tree.leaves(trained.state), jax.tree.leaves(loaded.state)):
+        assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+    agent = loaded.agent
+    graph, kp = build_map(agent, ds.observations, cfg.map, k_map)
+    res = evaluate.evaluate(env, agent, graph, cfg.agent, cfg.with_overrides(['protocol.envs=5']).protocol,
                             progress=False, key=k_eval)
     assert int(out['keypoints']) == int(kp.count) >= 2
-    assert_params_close(out['params'], {'q': state.q_params, 'pi': state.pi_params})
+    assert_params_close(out['params'], trained.params)
     np.testing.assert_array_equal(out['episode_success'], res.success)
     np.testing.assert_array_equal(out['pruned'], res.pruned)
     assert out['pruned'].sum() > 0  # kappa 0: budgets overrun, so the comparison covers pruning
@@ -82,15 +88,14 @@ def test_seeds_vmap_in_one_compile_and_match_separate_calls():
 
 
 def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys, monkeypatch):
-    from aqm_mjx import checkpoint as ckpt  # pylint: disable=import-outside-toplevel
     from aqm_mjx import cli  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import checkpoint as ckpt  # pylint: disable=import-outside-toplevel
 
     path = tmp_path / 'pointmaze-medium-navigate.npz'
     np.savez(path, **synthetic.point_walks())
     out = tmp_path / 'run'
-    argv = ['run', '--env', 'pointmaze-medium', '--dataset', str(path), '--preset', 'tiny', '--set', 'steps=100',
-            '--set', 'checkpoint_every=50', '--eval-episodes', '1', '--eval-steps', '40', '--delta', '0.5',
-            '--out', str(out)]
+    argv = ['run', '--env', 'pointmaze-medium', '--dataset', str(path), '--preset', 'ci', '--set', 'steps=100',
+            '--set', 'train.checkpoint_every=50', '--episodes', '1', '--horizon', '40', '--out', str(out)]
     # Ctrl-C right after the first checkpoint (step 50): exit 130, a message, nothing evaluated yet
     save = ckpt.Checkpointer.save
 
@@ -105,7 +110,7 @@ def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys, monkeypat
     # the same command again resumes at step 50 and finishes
     assert cli.main(argv) == 0
     first = capsys.readouterr().out
-    assert 'resuming tiny preset' in first and 'mean success' in first
+    assert 'resuming aqm ci preset' in first and 'mean success' in first
     steps = [json.loads(line)['step'] for line in (out / 'train' / 'metrics.jsonl').read_text().splitlines()]
     assert steps == [50, 100]  # one line per log_every, none repeated: it went on from 50
     summary = json.loads((out / 'summary.json').read_text())
@@ -117,6 +122,9 @@ def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys, monkeypat
     assert cli.main(argv + ['--one-program', '--seeds', '2']) == 0
     res = json.loads((out / 'one_program.json').read_text())
     assert len(res['success']) == 2 and len(res['keypoints']) == 2
+    # the run's config is saved beside it and reads back equal
+    saved = pipeline.RunConfig.from_dict(json.loads((out / 'run.json').read_text()))
+    assert saved.train.steps == 100 and saved.protocol.horizon == 40 and saved.map.delta == 0.5
 
 
 SHARD_SEEDS = r'''
@@ -124,7 +132,9 @@ import os, sys
 import jax, numpy as np
 sys.path.insert(0, os.path.dirname(sys.argv[1]))
 from test_pipeline import tiny_config
-from aqm_mjx import dataset as ds_io, envs, evaluate, pipeline, synthetic
+from aqm_mjx import envs, pipeline, run as host
+from aqm_mjx.data import dataset as ds_io, synthetic
+from aqm_mjx.evaluation import evaluate
 assert jax.device_count() == 2
 run = pipeline.make_run(tiny_config(), envs.make('pointmaze-medium'))
 ds = ds_io.to_device(synthetic.point_walks())
@@ -132,7 +142,7 @@ keys = jax.random.split(jax.random.PRNGKey(0), 2)
 program = jax.jit(jax.vmap(run, in_axes=(0, None)))
 outs = {}
 for n in (1, 2):
-    k = pipeline.shard_seeds(keys, evaluate.device_mesh(jax.devices()[:n]))
+    k = host.shard_seeds(keys, evaluate.device_mesh(jax.devices()[:n]))
     assert len(k.sharding.device_set) == n
     outs[n] = jax.device_get(program(k, ds))
 for name in ('episode_success', 'pruned', 'keypoints', 'success'):

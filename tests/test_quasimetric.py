@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from aqm_mjx import quasimetric as qm
+from aqm_mjx.learn import quasimetric as qm
 
 
 def test_interval_union_length_hand_computed():
@@ -52,16 +52,39 @@ def test_qrl_losses_hand_computed():
     d_pos = jnp.array([0.5, 1.5, 3.0])  # relu(d - 1)^2 = 0, 0.25, 4
     d_goal = jnp.array([10.0, 60.0, 50.0])
     lam = jnp.array(2.0)
-    loss, lam_loss, info = qm.qrl_losses(d_pos, d_goal, lam, epsilon=0.25, offset=50.0, scale=0.01)
+    loss, info = qm.qrl_loss(d_pos, d_goal, lam, epsilon=0.25, offset=50.0, scale=0.01)
     close = np.array([0.0, 0.25, 4.0]) - 0.0625
     push = np.log1p(np.exp(0.01 * (50.0 - np.array([10.0, 60.0, 50.0])))) / 0.01
     # Mean over the batch of lam * close + push.
     np.testing.assert_allclose(float(loss), 2.0 * close.mean() + push.mean(), rtol=1e-5)
     np.testing.assert_allclose(float(info['qrl/push']), push.mean(), rtol=1e-5)
-    # lambda's gradient ascends on the violation: d(lam_loss)/d(lam) = -mean(close) < 0 here.
-    g = jax.grad(lambda l: qm.qrl_losses(d_pos, d_goal, l, 0.25, 50.0, 0.01)[1])(lam)
+    np.testing.assert_allclose(float(info['qrl/close']), close.mean(), rtol=1e-5)
+    # lambda's loss: -lam * mean(close); its gradient ascends on the violation: -mean(close) < 0 here
+    lam_loss, lam_info = qm.lambda_loss(d_pos, lam, 0.25)
+    np.testing.assert_allclose(float(lam_loss), -2.0 * close.mean(), rtol=1e-5)
+    np.testing.assert_allclose(float(lam_info['lambda/violation']), close.mean(), rtol=1e-5)
+    g = jax.grad(lambda l: qm.lambda_loss(d_pos, l, 0.25)[0])(lam)
     np.testing.assert_allclose(float(g), -close.mean(), rtol=1e-5)
-    # No gradient reaches lambda through the quasimetric loss, and push decreases as d_goal grows.
-    assert float(jax.grad(lambda l: qm.qrl_losses(d_pos, d_goal, l, 0.25, 50.0, 0.01)[0])(lam)) == 0.0
-    gd = jax.grad(lambda dg: qm.qrl_losses(d_pos, dg, lam, 0.25, 50.0, 0.01)[0])(d_goal)
-    assert np.all(np.asarray(gd) < 0)
+    # no gradient reaches the distances through lambda's loss, nor lambda through the quasimetric's
+    assert float(jnp.abs(jax.grad(lambda dp: qm.lambda_loss(dp, lam, 0.25)[0])(d_pos)).sum()) == 0.0
+    assert float(jax.grad(lambda l: qm.qrl_loss(d_pos, d_goal, l, 0.25, 50.0, 0.01)[0])(lam)) == 0.0
+    gd = jax.grad(lambda dg: qm.qrl_loss(d_pos, dg, lam, 0.25, 50.0, 0.01)[0])(d_goal)
+    assert np.all(np.asarray(gd) < 0)  # push decreases as d_goal grows
+
+
+def test_training_steps_lambda_with_the_tested_loss():
+    """AQM's update moves the multiplier by Adam on lambda_loss's gradient. With epsilon 10 the
+    constraint holds by far (violation = mean(relu(d - 1)^2) - 100 < 0), so lambda shrinks, by the
+    learning rate on Adam's first step; 'ogbench' steps log lambda the same way."""
+    from aqm_mjx.data import dataset as dsm
+    from aqm_mjx.data import synthetic
+    from aqm_mjx.learn import aqm
+
+    ds = dsm.to_device(synthetic.point_walks(n_traj=10, t_len=30))
+    for qrl in ('paper', 'ogbench'):
+        cfg = aqm.AQMConfig.preset('ci', env='pointmaze-medium', epsilon=10.0, qrl=qrl)
+        learner = aqm.make(cfg, 2, 2)
+        state = learner.init(jax.random.PRNGKey(0))
+        new, m = jax.jit(learner.update)(state, ds)
+        assert -100.0 <= float(m['lambda/violation']) < -99.0
+        np.testing.assert_allclose(float(new.lam) - float(state.lam), -cfg.lr_lambda, rtol=1e-3)

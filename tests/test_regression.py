@@ -1,9 +1,11 @@
 """Regression: per-episode success, prunes and keypoint counts of the three ways to run AQM.
 
-Recorded at a small fixed configuration (tiny preset, 100 updates, 2 tasks x 2 episodes, kappa 0 so
-that budgets are overrun) before the package was split into stage packages; the same seeds must give
-the same values afterwards. ``tests/regression_values.json`` holds them; change an entry only where a
-change of behaviour is intended, and say so in the commit.
+Recorded at a small fixed configuration (the ci preset at 100 updates, 2 tasks x 2 episodes,
+kappa 0 so that budgets are overrun) before the package was split into stage packages; the same
+seeds give the same values afterwards. ``tests/regression_values.json`` holds them. One change was
+intended and recorded: ``aqm-mjx evaluate`` now splits its seed into map and episode keys with
+``stage_keys`` as ``aqm-mjx run`` does (it used ``PRNGKey(seed)`` for both), so its values now
+equal the step-by-step run's.
 """
 
 import json
@@ -13,8 +15,10 @@ import jax
 import numpy as np
 import pytest
 
-from aqm_mjx import cli, envs, evaluate, pipeline, synthetic, train
-from aqm_mjx import dataset as ds_io
+from aqm_mjx import cli, envs, pipeline, run
+from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.data import synthetic
+from aqm_mjx.evaluation import evaluate as evaluation
 
 SEED = 3
 RECORDED = json.load(open(os.path.join(os.path.dirname(__file__), 'regression_values.json')))
@@ -35,40 +39,39 @@ def ant_walks(n_traj=30, t_len=40, seed=0):
 CASES = {'pointmaze-medium': (synthetic.point_walks, 60), 'antmaze-medium': (ant_walks, 30)}
 
 
-def run_three_paths(env_name, tmp):
-    make_data, steps = CASES[env_name]
+def config(env_name, horizon):
+    cfg = pipeline.RunConfig.preset('ci', env=env_name, seed=SEED)
+    return cfg.with_overrides(['train.steps=100', 'train.updates_per_call=50', 'train.log_every=50',
+                               'train.checkpoint_every=50', 'protocol.tasks=1,2', f'protocol.horizon={horizon}',
+                               'protocol.ablations=no-pruning,flat'])
+
+
+def run_three_paths(env_name, tmp, monkeypatch):
+    make_data, horizon = CASES[env_name]
     data = make_data()
     path = os.path.join(tmp, f'{env_name}-navigate.npz')
     np.savez(path, **data)
-    tcfg = train.TrainConfig.preset('tiny', env=env_name, steps=100, updates_per_call=50, log_every=50,
-                                    checkpoint_every=50, seed=SEED)
-    ecfg = evaluate.EvalConfig(episodes=2, tasks=(1, 2), steps=steps, delta=0.5, max_keypoints=32, candidates=400,
-                               switch_radius=0.6, kappa=0.0, ablations=('no-pruning', 'flat'), envs=64, seed=SEED)
-    cfg = pipeline.RunConfig(train=tcfg, eval=ecfg)
+    cfg = config(env_name, horizon)
     caught = []
-    orig = evaluate.evaluate
+    real = evaluation.evaluate
 
     def capture(*a, **k):
-        caught.append(orig(*a, **k))
+        caught.append(real(*a, **k))
         return caught[-1]
 
-    evaluate.evaluate = capture
-    try:
-        run_dir = os.path.join(tmp, 'run')
-        pipeline.run_stepwise(cfg, env_name, run_dir, dataset=path, seed=SEED, log=lambda *_: None)
-        stepwise = caught[-1]
-        argv = ['evaluate', '--checkpoint', os.path.join(run_dir, 'train'), '--dataset', path, '--episodes', '2',
-                '--tasks', '1', '2', '--steps', str(steps), '--delta', '0.5', '--max-keypoints', '32',
-                '--candidates', '400', '--switch-radius', '0.6', '--kappa', '0', '--ablations', 'no-pruning', 'flat',
-                '--envs', '64', '--seed', str(SEED), '--out', os.path.join(tmp, 'ev')]
-        assert cli.main(argv) == 0
-        command = caught[-1]
-    finally:
-        evaluate.evaluate = orig
+    monkeypatch.setattr(run, 'evaluate', capture)
+    run_dir = os.path.join(tmp, 'run')
+    run.run_stepwise(cfg, run_dir, dataset=path, log=lambda *_: None)
+    stepwise = caught[-1]
+    argv = ['evaluate', '--checkpoint', os.path.join(run_dir, 'train'), '--dataset', path, '--tasks', '1', '2',
+            '--horizon', str(horizon), '--ablations', 'no-pruning', 'flat', '--seed', str(SEED),
+            '--out', os.path.join(tmp, 'ev')]
+    assert cli.main(argv) == 0  # the ci preset from the checkpoint, these options on top
+    command = caught[-1]
     kp_stepwise = json.load(open(os.path.join(run_dir, 'summary.json')))['keypoints']
     kp_command = json.load(open(os.path.join(tmp, 'ev', 'results.json')))['keypoints']
-    run = pipeline.make_run(cfg, envs.make(env_name))
-    one = jax.device_get(jax.jit(run)(jax.random.PRNGKey(SEED), ds_io.to_device(data)))
+    program = pipeline.make_run(cfg, envs.make(env_name))
+    one = jax.device_get(jax.jit(program)(jax.random.PRNGKey(SEED), ds_io.to_device(data)))
     as_lists = lambda s, p, k: dict(success=np.asarray(s).astype(int).tolist(), pruned=np.asarray(p).tolist(),  # noqa: E731
                                     keypoints=int(k))
     return dict(stepwise=as_lists(stepwise.success, stepwise.pruned, kp_stepwise),
@@ -78,11 +81,14 @@ def run_three_paths(env_name, tmp):
 
 @pytest.mark.parametrize('env_name', [
     'pointmaze-medium',
-    pytest.param('antmaze-medium', marks=pytest.mark.slow),  # about 4 minutes of MJX compiles and ant steps
+    pytest.param('antmaze-medium', marks=pytest.mark.slow),  # minutes of MJX compiles and ant steps
 ])
-def test_same_seeds_give_the_recorded_values(env_name, tmp_path):
-    got = run_three_paths(env_name, str(tmp_path))
+def test_same_seeds_give_the_recorded_values(env_name, tmp_path, monkeypatch):
+    got = run_three_paths(env_name, str(tmp_path), monkeypatch)
     want = RECORDED[env_name]
-    for path in ('stepwise', 'evaluate', 'one_program'):
+    for path in ('stepwise', 'one_program'):
         assert got[path] == {k: want[path][k] for k in ('success', 'pruned', 'keypoints')}, path
+    # the evaluate command's intended change: its seed is split like the run's, so it equals the run
+    assert got['evaluate'] == got['stepwise']
+    assert got['evaluate'] == {k: want['evaluate_after_key_split'][k] for k in ('success', 'pruned', 'keypoints')}
     assert sum(want['stepwise']['pruned']) > 0  # kappa 0 overruns budgets: the values cover pruning

@@ -6,8 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from aqm_mjx import envs, evaluate, plan, rollout
+from aqm_mjx import envs
+from aqm_mjx.agent import oracle, plan, rollout, rules
+from aqm_mjx.agent.rules import START, AgentConfig
 from aqm_mjx.envs import mazes
+from aqm_mjx.mapping.graph import Graph
 
 
 def _agent_step_case():
@@ -15,44 +18,44 @@ def _agent_step_case():
     dist = lambda x, y: jnp.abs(x[0] - y[0])  # noqa: E731
     z = jnp.array([[0.0], [10.0], [20.0]])
     w = jnp.array([[0, 10, jnp.inf], [10, 0, 10], [jnp.inf, 10, 0]], jnp.float32)
-    g = rollout.Graph(z=z, obs=jnp.zeros((3, 2)), mask=jnp.ones(3, bool), w=w)
-    cfg = rollout.AgentConfig(kappa=0.5, switch_radius=1.0, tau=6.0)
+    g = Graph(z=z, obs=jnp.zeros((3, 2)), mask=jnp.ones(3, bool), w=w, tau=jnp.float32(6.0))
+    cfg = AgentConfig(kappa=0.5, switch_radius=1.0)
     return dist, g, cfg
 
 
 def test_agent_switches_budgets_and_prunes_by_hand():
     dist, g, cfg = _agent_step_case()
-    a = rollout.agent_init(dist, g, cfg, jnp.array([0.5]), jnp.array([20.5]))
+    a = rules.agent_init(dist, g, jnp.array([0.5]), jnp.array([20.5]), 0.5)
     # the start leg s -> z0 is budgeted too: (1 + 0.5) * 0.5
-    assert int(a.node) == 0 and int(a.prev) == rollout.START and float(a.budget) == pytest.approx(0.75)
-    a = rollout.agent_step(dist, g, cfg, a, jnp.array([0.2]), 0.5)  # reaches z0: next hop z1, budget 15
+    assert int(a.node) == 0 and int(a.prev) == START and float(a.budget) == pytest.approx(0.75)
+    a = rules.agent_step(dist, g, cfg, a, jnp.array([0.2]), 0.5)  # reaches z0: next hop z1, budget 15
     assert (int(a.node), int(a.prev), float(a.budget), int(a.t_edge)) == (1, 0, 15.0, 0)
     for _ in range(15):
-        a = rollout.agent_step(dist, g, cfg, a, jnp.array([3.0]), 0.5)
+        a = rules.agent_step(dist, g, cfg, a, jnp.array([3.0]), 0.5)
     assert int(a.pruned) == 0 and int(a.t_edge) == 15
-    a = rollout.agent_step(dist, g, cfg, a, jnp.array([3.0]), 0.5)  # step 16 > budget: prune 0 -> 1
+    a = rules.agent_step(dist, g, cfg, a, jnp.array([3.0]), 0.5)  # step 16 > budget: prune 0 -> 1
     assert int(a.pruned) == 1 and bool(a.needs_replan) and int(a.node) == 0 and int(a.prev) == -1
     assert not np.isfinite(float(a.w[0, 1])) and float(a.w[1, 0]) == 10.0
-    a = rollout.replan(jax.tree.map(lambda x: x[None], a))
+    a = rules.replan(jax.tree.map(lambda x: x[None], a))
     a = jax.tree.map(lambda x: x[0], a)
     assert int(a.nxt[0, 2]) == -1  # goal side now unreachable from z0
-    a = jax.tree.map(lambda x: x[0], jax.vmap(rollout.redirect)(jax.tree.map(lambda x: x[None], a), jnp.array([0.5])))
+    a = jax.tree.map(lambda x: x[0], jax.vmap(rules.redirect)(jax.tree.map(lambda x: x[None], a), jnp.array([0.5])))
     assert int(a.node) == -1 and int(a.prev) == -1  # no path left from z0: aim at the goal
     # kappa = inf never prunes
-    b = rollout.agent_init(dist, g, cfg, jnp.array([0.5]), jnp.array([20.5]), kappa=jnp.inf)
+    b = rules.agent_init(dist, g, jnp.array([0.5]), jnp.array([20.5]), jnp.inf)
     assert not np.isfinite(float(b.budget))
-    b = rollout.agent_step(dist, g, cfg, b, jnp.array([0.2]), jnp.inf)
+    b = rules.agent_step(dist, g, cfg, b, jnp.array([0.2]), jnp.inf)
     for _ in range(100):
-        b = rollout.agent_step(dist, g, cfg, b, jnp.array([3.0]), jnp.inf)
+        b = rules.agent_step(dist, g, cfg, b, jnp.array([3.0]), jnp.inf)
     assert int(b.pruned) == 0 and int(b.node) == 1
 
 
 def test_goal_and_start_legs_are_budgeted_by_hand():
     dist, g, cfg = _agent_step_case()  # z = 0, 10, 20 on a line, kappa 0.5, tau 6
-    step = lambda a, x: rollout.agent_step(dist, g, cfg, a, jnp.array([x]), 0.5)  # noqa: E731
+    step = lambda a, x: rules.agent_step(dist, g, cfg, a, jnp.array([x]), 0.5)  # noqa: E731
     # goal leg: the goal at 25 hangs off z2 (to_g = [inf, inf, 5])
-    a = rollout.agent_init(dist, g, cfg, jnp.array([10.3]), jnp.array([25.0]))
-    assert (int(a.node), int(a.prev), float(a.budget)) == (1, rollout.START, pytest.approx(1.5 * 0.3))
+    a = rules.agent_init(dist, g, jnp.array([10.3]), jnp.array([25.0]), 0.5)
+    assert (int(a.node), int(a.prev), float(a.budget)) == (1, START, pytest.approx(1.5 * 0.3))
     a = step(a, 10.0)  # z1 reached: edge z1 -> z2, budget 15
     assert (int(a.node), int(a.prev), float(a.budget)) == (2, 1, 15.0)
     a = step(a, 20.0)  # z2 reached: the goal leg z2 -> g, budget 1.5 * 5
@@ -65,14 +68,14 @@ def test_goal_and_start_legs_are_budgeted_by_hand():
     np.testing.assert_array_equal(a.w, g.w)
     assert (a.cuts == -1).all()  # cuts keeps keypoint edges only
     # start leg: from 4.0 only z0 is within tau (budget 1.5 * 4 = 6)
-    b = rollout.agent_init(dist, g, cfg, jnp.array([4.0]), jnp.array([20.5]))
-    assert (int(b.node), int(b.prev), float(b.budget)) == (0, rollout.START, 6.0)
+    b = rules.agent_init(dist, g, jnp.array([4.0]), jnp.array([20.5]), 0.5)
+    assert (int(b.node), int(b.prev), float(b.budget)) == (0, START, 6.0)
     for _ in range(6):
         b = step(b, 4.0)
     assert int(b.pruned) == 0 and int(b.node) == 0
     b = step(b, 4.0)  # overrun: z0 banned as an entry; re-attached from 4.0 to the nearest other, z1 (6 away)
     assert bool(b.banned[0]) and not b.banned[1:].any() and int(b.pruned) == 1 and not bool(b.needs_replan)
-    assert (int(b.node), int(b.prev), float(b.budget), int(b.t_edge)) == (1, rollout.START, 9.0, 0)
+    assert (int(b.node), int(b.prev), float(b.budget), int(b.t_edge)) == (1, START, 9.0, 0)
 
 
 def _scenario(agent, n, steps, kappas):
@@ -83,21 +86,20 @@ def _scenario(agent, n, steps, kappas):
     env = envs.make(f'{agent}maze-medium')
     speed = 0.12 if agent == 'ant' else 0.15
     # the map and the controller know only the training layout
-    oracle, graph, match = evaluate.oracle_agent(env, base, delta=4.0, speed=speed)
-    aux = oracle.aux
-    cfg = rollout.AgentConfig(switch_radius=match['switch_radius'], tau=match['tau'])
+    agent, graph, match = oracle.oracle_agent(env, base, delta=4.0, speed=speed)
+    aux = agent.aux
+    cfg = AgentConfig(switch_radius=match['switch_radius'])
     traces = []
 
     def counted(*args):
         traces.append(1)
-        return rollout.make_evaluate(env, oracle.encode, oracle.dist, oracle.controller, cfg, steps)(*args)
+        return rollout.make_rollout(env, agent, cfg, steps)(*args)
 
     run = jax.jit(counted)
     b = n * len(kappas)
     kappa = jnp.repeat(jnp.asarray(kappas, jnp.float32), n)
-    grids = jnp.broadcast_to(jnp.asarray(closed, jnp.int8), (b,) + base.shape)
-    out = run(aux, graph, rollout.split_keys(jax.random.PRNGKey(0), b), jnp.full((b,), 4, jnp.int32), grids, kappa,
-              jnp.ones(b, bool))
+    keys = rollout.episode_keys(jax.random.PRNGKey(0), np.arange(b))
+    out = run(aux, graph, rollout.episode_inputs(keys, np.full(b, 4), closed, kappa, True))
     return jax.device_get(out), run, (aux, graph, base, b, kappa), traces
 
 
@@ -114,8 +116,8 @@ def test_pruning_reroutes_the_point_around_a_closed_corridor_and_compiles_once()
     out, run, (aux, graph, base, b, kappa), traces = _scenario('point', 10, 400, kappas)
     _check(out, 10, kappas)
     # a second call with other tasks, seeds and walls does not recompile
-    inputs = rollout.episode_inputs(jax.random.PRNGKey(7), np.arange(b) % 5 + 1, base, np.asarray(kappa), True)
-    out2 = jax.device_get(run(aux, graph, *inputs))
+    keys = rollout.episode_keys(jax.random.PRNGKey(7), np.arange(b))
+    out2 = jax.device_get(run(aux, graph, rollout.episode_inputs(keys, np.arange(b) % 5 + 1, base, kappa, True)))
     assert len(traces) == 1
     assert out2['success'][:10].mean() >= 0.9  # open maze, tasks 1..5
 
@@ -132,14 +134,14 @@ def test_replan_touches_only_pruning_agents_and_ignores_the_slot_count():
     rng = np.random.default_rng(0)
     b, k = 13, 12
     w = np.where(rng.random((b, k, k)) < 0.3, rng.uniform(1, 10, (b, k, k)), np.inf).astype(np.float32)
-    g = rollout.Graph(z=jnp.zeros((k, 1)), obs=jnp.zeros((k, 2)), mask=jnp.ones(k, bool), w=jnp.asarray(w[0]))
-    cfg = rollout.AgentConfig()
+    g = Graph(z=jnp.zeros((k, 1)), obs=jnp.zeros((k, 2)), mask=jnp.ones(k, bool), w=jnp.asarray(w[0]),
+              tau=jnp.float32(20.0))
     dist = lambda x, y: jnp.abs(x[0] - y[0])  # noqa: E731
-    a = jax.vmap(lambda _: rollout.agent_init(dist, g, cfg, jnp.zeros(1), jnp.zeros(1)))(jnp.arange(b))
+    a = jax.vmap(lambda _: rules.agent_init(dist, g, jnp.zeros(1), jnp.zeros(1), 0.25))(jnp.arange(b))
     need = rng.random(b) < 0.5
     a = a.replace(w=jnp.asarray(w), needs_replan=jnp.asarray(need))
     want_d, want_n = plan.floyd_warshall_batch(jnp.asarray(w))
-    outs = [rollout.replan(a, slots) for slots in (1, 4, 8, b)]
+    outs = [rules.replan(a, slots) for slots in (1, 4, 8, b)]
     for o in outs:
         np.testing.assert_array_equal(o.dist[need], want_d[need])  # pruning agents: their new shortest paths
         np.testing.assert_array_equal(o.nxt[need], want_n[need])

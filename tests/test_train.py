@@ -1,4 +1,4 @@
-"""Policies' objectives by hand, the training config, calibration on a directed grid, Orbax resume."""
+"""Policies by hand, the training config, calibration on a directed grid, Orbax resume."""
 
 import json
 import math
@@ -14,8 +14,10 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from aqm_mjx import cli, policy, synthetic, train
-from aqm_mjx import dataset as dsm
+from aqm_mjx import cli
+from aqm_mjx.data import dataset as dsm
+from aqm_mjx.data import synthetic
+from aqm_mjx.learn import aqm, fit, policy
 
 
 # ----------------------------------------------------------------------------------- objectives
@@ -28,20 +30,6 @@ def test_log_prob_and_kl_by_hand():
     # KL(N(0, 1) || N(0, 2^2)) = log 2 + 1/8 - 1/2
     assert float(policy.kl(jnp.zeros(1), jnp.zeros(1), jnp.zeros(1), jnp.log(jnp.full(1, 2.0)))) == pytest.approx(
         math.log(2) + 0.125 - 0.5, rel=1e-6)
-
-
-def test_advantage_weighted_losses_by_hand():
-    logp = jnp.array([-1.0, -2.0, -3.0])
-    adv = jnp.array([0.0, 1.0, 10.0])  # weights exp(3 * adv) = 1, e^3, clipped at 100
-    loss, w = policy.awr_loss(logp, adv, 3.0, 100.0)
-    np.testing.assert_allclose(w, [1.0, math.exp(3.0), 100.0], rtol=1e-6)
-    assert float(loss) == pytest.approx(-(-1.0 - 2 * math.exp(3.0) - 300.0) / 3, rel=1e-6)
-    kl = jnp.array([0.5, 0.0, 2.0])
-    loss, w = policy.saw_loss(kl, jnp.array([-1.0, 5.0, 0.5]), 3.0, 100.0)
-    assert float(loss) == pytest.approx((0.5 * math.exp(-3.0) + 0.0 + 2.0 * math.exp(1.5)) / 3, rel=1e-6)
-    # gradients never flow into the quasimetric through the weights
-    g = jax.grad(lambda adv: policy.awr_loss(logp, adv, 3.0, 100.0)[0])(adv)
-    np.testing.assert_array_equal(g, 0.0)
 
 
 def test_direction_conditioning():
@@ -70,35 +58,37 @@ def test_egocentric_direction_turns_with_the_torso_yaw():
 
 # ---------------------------------------------------------------------------------------- config
 def test_config_presets_validation_and_json():
-    paper = train.TrainConfig.preset('paper', env='antmaze-large')
+    paper = aqm.AQMConfig.preset('paper', env='antmaze-large')
     assert (paper.q_hidden, paper.n_components, paper.component_size, paper.batch_size, paper.steps) == (
         (512, 512, 512), 512, 1, 1024, 1_000_000)
     assert (paper.lr_quasimetric, paper.lr_policy, paper.lr_lambda, paper.lambda_init, paper.temperature) == (
         1e-4, 3e-4, 1e-2, 1.0, 3.0)
-    assert paper.offset == 125.0 and train.TrainConfig.preset('cpu', env='antmaze-giant').offset == 250.0
-    assert train.TrainConfig.preset('cpu', qrl='ogbench').offset == 500.0
-    assert paper.conditioning == 'goal' and train.TrainConfig.preset('cpu').conditioning == 'egocentric'
-    assert train.TrainConfig.preset('cpu').lr_quasimetric == 3e-4
-    cfg = train.TrainConfig.preset('cpu').with_overrides(['batch_size=64', 'q_hidden=64,32', 'objective=bc',
+    assert paper.offset == 125.0 and aqm.AQMConfig.preset('cpu', env='antmaze-giant').offset == 250.0
+    assert aqm.AQMConfig.preset('cpu', qrl='ogbench').offset == 500.0
+    assert paper.conditioning == 'goal' and aqm.AQMConfig.preset('cpu').conditioning == 'egocentric'
+    assert aqm.AQMConfig.preset('cpu').lr_quasimetric == 3e-4
+    cfg = aqm.AQMConfig.preset('cpu').with_overrides(['batch_size=64', 'q_hidden=64,32', 'objective=bc',
                                                           'push_offset=30'])
     assert (cfg.batch_size, cfg.q_hidden, cfg.objective, cfg.offset) == (64, (64, 32), 'bc', 30.0)
-    assert train.TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
-    for bad, msg in ((dict(objective='ppo'), 'unknown objective'), (dict(steps=1001), 'multiple of updates_per_call'),
-                     (dict(conditioning='polar'), 'unknown conditioning'), (dict(lr_policy=-1.0), 'lr_policy'),
+    assert aqm.AQMConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    for bad, msg in ((dict(objective='ppo'), 'objective: unknown value'), (dict(steps=1001), 'multiple of updates_per_call'),
+                     (dict(conditioning='polar'), 'conditioning: unknown value'), (dict(lr_policy=-1.0), 'lr_policy'),
                      (dict(env='antmaze-huge'), 'unknown environment'), (dict(env=None), 'push_offset')):
         with pytest.raises(ValueError, match=msg):
-            train.TrainConfig.preset('cpu', **bad)
+            aqm.AQMConfig.preset('cpu', **bad)
     with pytest.raises(ValueError, match='unknown preset'):
-        train.TrainConfig.preset('gpu')
-    with pytest.raises(ValueError, match='unknown config field'):
+        aqm.AQMConfig.preset('gpu')
+    with pytest.raises(ValueError, match="unknown AQMConfig field 'learning_rate'"):
         cfg.with_overrides(['learning_rate=1'])
+    with pytest.raises(ValueError, match=r'AQMConfig.batch_size \(int\): cannot read'):
+        cfg.with_overrides(['batch_size=abc'])
 
 
 def test_infer_env():
-    assert train.infer_env('/data/antmaze-large-navigate-v0.npz') == ('antmaze-large', 'navigate')
-    assert train.infer_env('pointmaze-medium-explore.npz') == ('pointmaze-medium', 'explore')
+    assert dsm.infer_env('/data/antmaze-large-navigate-v0.npz') == ('antmaze-large', 'navigate')
+    assert dsm.infer_env('pointmaze-medium-explore.npz') == ('pointmaze-medium', 'explore')
     with pytest.raises(ValueError, match='pass --env'):
-        train.infer_env('my_data.npz')
+        dsm.infer_env('my_data.npz')
 
 
 # ----------------------------------------------------------------------------------- calibration
@@ -106,7 +96,7 @@ def _grid_config(**kw):
     base = dict(env=None, push_offset=30.0, push_scale=0.1, steps=6000, batch_size=256, updates_per_call=500,
                 log_every=500, checkpoint_every=500, q_hidden=(64, 64), n_components=64, pi_hidden=(32,),
                 lr_quasimetric=1e-3, subgoal_offset=3)
-    return train.TrainConfig.preset('tiny', **{**base, **kw})
+    return aqm.AQMConfig.preset('ci', **{**base, **kw})
 
 
 def test_quasimetric_calibrates_on_a_directed_grid():
@@ -114,13 +104,14 @@ def test_quasimetric_calibrates_on_a_directed_grid():
     data = synthetic.grid_walks(grid, episodes=400, steps=40, seed=0)
     truth = synthetic.shortest_steps(grid)
     cfg = _grid_config()
-    learner = train.make_learner(cfg, obs_size=2, action_size=2)
+    learner = aqm.make(cfg, obs_size=2, action_size=2)
     state = learner.init(jax.random.PRNGKey(0))
     ds = dsm.to_device(data)
-    for _ in range(cfg.steps // cfg.updates_per_call):
-        state, m = learner.chunk(state, ds)
+    chunk = jax.jit(fit.chunk_step(learner.update, cfg.updates_per_call))
+    for _ in range(cfg.chunks):
+        state, m = chunk(state, ds)
     cells = np.array([(x, y) for x in range(5) for y in range(5)], np.float32)
-    d = np.asarray(jax.jit(learner.distance)(state.q_params, cells[:, None], cells[None]))
+    d = np.asarray(jax.jit(learner.modules['quasimetric'].apply)(state.q_params, cells[:, None], cells[None]))
     off = ~np.eye(25, dtype=bool)
     rho = spearmanr(d[off], truth[off]).correlation
     assert rho >= 0.9, rho
@@ -141,12 +132,12 @@ def _write_grid_dataset(tmp_path):
 
 def _train_cmd(dataset, out, steps, *extra):
     return [sys.executable, '-m', 'aqm_mjx.cli', 'train', '--dataset', dataset, '--env', 'pointmaze-medium', '--preset',
-            'tiny', '--set', 'checkpoint_every=50', '--set', 'updates_per_call=50', '--set', 'log_every=50',
+            'ci', '--set', 'checkpoint_every=50', '--set', 'updates_per_call=50', '--set', 'log_every=50',
             '--set', 'keep=20', '--steps', str(steps), '--out', out, *extra]
 
 
 def _params(run):
-    t = train.load(run, log=lambda *_: None)
+    t = fit.load(run, log=lambda *_: None)
     return t.step, jax.tree.leaves(t.state)
 
 
@@ -182,7 +173,7 @@ def test_resume_after_kill_is_bit_identical(tmp_path):
 def test_unreadable_newest_checkpoint_falls_back(tmp_path, capsys):
     dataset = _write_grid_dataset(tmp_path)
     out = str(tmp_path / 'run')
-    assert cli.main(['train', '--dataset', dataset, '--env', 'pointmaze-medium', '--preset', 'tiny', '--out', out]) == 0
+    assert cli.main(['train', '--dataset', dataset, '--env', 'pointmaze-medium', '--preset', 'ci', '--out', out]) == 0
     ck = os.path.join(out, 'checkpoints')
     assert sorted(int(s) for s in os.listdir(ck) if s.isdigit()) == [100, 200]
     # corrupt every file of the newest checkpoint
@@ -192,12 +183,13 @@ def test_unreadable_newest_checkpoint_falls_back(tmp_path, capsys):
                 fh.write(b'garbage')
     logs = []
     with pytest.warns(RuntimeWarning, match='falling back'):
-        t = train.load(out, log=logs.append)
+        t = fit.load(out, log=logs.append)
     assert t.step == 100 and 'checkpoint 200' in logs[0]
-    a = t.learner.act(t.state.pi_params, jnp.zeros((3, 2)), jnp.ones((3, 2)))
+    agent = t.agent
+    a = jax.vmap(lambda o, g: agent.controller(agent.aux, o, g, 0, None))(jnp.zeros((3, 2)), jnp.ones((3, 2)))
     assert a.shape == (3, 2)
     # a new run refuses to write over it; a bad dataset is named
-    assert cli.main(['train', '--dataset', dataset, '--env', 'pointmaze-medium', '--preset', 'tiny', '--out', out]) == 2
+    assert cli.main(['train', '--dataset', dataset, '--env', 'pointmaze-medium', '--preset', 'ci', '--out', out]) == 2
     assert '--resume' in capsys.readouterr().err
     assert cli.main(['train', '--dataset', dataset, '--env', 'antmaze-medium', '--out', str(tmp_path / 'r2')]) == 2
     assert 'observations are 2-d but the environment expects 29' in capsys.readouterr().err

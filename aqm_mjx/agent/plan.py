@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from aqm_mjx.keypoints import Dist
+from aqm_mjx.mapping.keypoints import Dist
 
 
 def _blocked_fw(weights: jax.Array, block: int, with_next: bool):

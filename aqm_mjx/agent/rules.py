@@ -1,57 +1,60 @@
-"""The AQM agent at test time, vectorised: every environment follows its own keypoint plan, keeps a
-time budget on the edge it traverses and, on overrun, prunes that edge in its own copy of the graph
-and replans (paper section 4.5). Physics, policy, planning and pruning run in one jitted program:
-``lax.scan`` over control steps, ``vmap`` over environments, no host round trip per step.
+"""The AQM agent's rules at test time, for one environment (``vmap`` them over a batch): plan on the
+keypoint graph, switch subgoals, keep a time budget on every leg and, on overrun, mark the leg
+untraversable in the environment's own copy of the graph and replan (paper section 4.5).
 
-Agent rules (per environment; fields of :class:`AgentConfig`):
-
-- Start: attach the state and the goal to the graph (:func:`aqm_mjx.plan.attach`, radius ``tau``)
-  and take the best plan s -> z_first -> ... -> z_last -> g (or go straight to g).
+- Start: attach the state and the goal to the graph (:func:`aqm_mjx.agent.plan.attach`, radius
+  ``graph.tau``) and take the best plan s -> z_first -> ... -> z_last -> g (or go straight to g).
 - Subgoal switching: the target keypoint z_j counts as reached when ``d(s, z_j) <= switch_radius``.
   From a reached keypoint the agent re-chooses the best last keypoint and steps to the next hop of
   its Floyd-Warshall path; at the last keypoint the target becomes the goal.
-- Budget: the edge z_i -> z_j gets ``B = (1 + kappa) * w(z_i, z_j)`` control steps. On overrun the
-  agent sets ``w(z_i, z_j) = inf`` in its own weight matrix, replans, and heads from where it is to
-  the next hop after z_i on the new best path, as the budgeted edge z_i -> hop. The legs from the start and into the goal are
-  not budgeted (they are not graph edges). ``kappa = inf`` disables pruning.
+- Budgets: every leg of the path (s, z_1, ..., z_n, g) gets ``B = (1 + kappa) d(from, to)`` control
+  steps. A keypoint edge that overruns is set to ``inf`` in the environment's weights, a goal leg
+  cuts that goal attachment, a start leg bans that entry keypoint and re-attaches from where the
+  agent stands. After a prune the agent replans and heads from where it is to the next hop after the
+  pruned leg's start. ``kappa = inf`` disables pruning.
 - ``use_graph=False`` is the flat policy: the target is always the goal.
-
-The quasimetric, the encoder of states into its inputs and the low-level controller are functions
-of an ``aux`` pytree passed as an argument (so parameters and tables are not compile-time constants).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Optional
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from aqm_mjx import plan as planning
-from aqm_mjx.graph import Graph
+from aqm_mjx.agent import plan as planning
+from aqm_mjx.config import option
+from aqm_mjx.mapping.graph import Graph
 
 MAX_CUTS = 16  # pruned edges remembered per environment for plots (all are counted in ``pruned``)
 
 
 @dataclasses.dataclass(frozen=True)
 class AgentConfig:
-    """Test-time rules of the agent (units are the quasimetric's: control steps)."""
+    """Test-time rules of the agent (units are the quasimetric's: control steps). The attachment
+    radius of the start and the goal is the graph's own ``tau``."""
 
-    kappa: float = 0.25  # budget slack: B = (1 + kappa) * d(z_i, z_j); inf disables pruning (see README)
-    switch_radius: float = 5.0  # a keypoint is reached when d(s, z) <= switch_radius
-    tau: float = 20.0  # attachment radius of the start and the goal (the graph's tau)
-    use_graph: bool = True  # False: the flat policy, aimed at the goal all the time
-    replan_slots: int = 8  # pruning environments replanned per Floyd-Warshall pass (speed only; GPU: more)
+    kappa: float = option(1.0, 'budget slack: B = (1 + kappa) d(z_i, z_j); inf disables pruning. 1, not the '
+                          "paper's small slack: at the cpu preset the learned policy walks slower than the data's "
+                          'expert that d measures (RESULTS.md, kappa sweep)')
+    switch_radius: float = option(10.0, 'a keypoint counts as reached when d(s, z) <= switch_radius (RESULTS.md)')
+    replan_slots: int = option(0, 'pruning environments replanned per Floyd-Warshall pass (speed only); '
+                               '0: 8 on a CPU, 256 elsewhere')
 
     def __post_init__(self):
         if not (self.kappa >= 0):
-            raise ValueError(f'kappa must be >= 0 (inf disables pruning); got {self.kappa}')
-        if not (self.switch_radius > 0 and self.tau > 0):
-            raise ValueError('switch_radius and tau must be > 0')
-        if int(self.replan_slots) < 1:
-            raise ValueError(f'replan_slots must be >= 1; got {self.replan_slots}')
+            raise ValueError(f'AgentConfig.kappa must be >= 0 (inf disables pruning); got {self.kappa}')
+        if not self.switch_radius > 0:
+            raise ValueError(f'AgentConfig.switch_radius must be > 0; got {self.switch_radius}')
+        if isinstance(self.replan_slots, bool) or not isinstance(self.replan_slots, int) or self.replan_slots < 0:
+            raise ValueError(f'AgentConfig.replan_slots must be an integer >= 0 (0: by device); got {self.replan_slots}')
+
+    @property
+    def slots(self) -> int:
+        """Replan slots in use: ``replan_slots``, or 8 on a CPU and 256 on an accelerator."""
+        return self.replan_slots or (8 if jax.default_backend() == 'cpu' else 256)
 
 
 START = -2  # AgentState.prev on the start leg (s -> z_1), whose budget is on the attachment edge
@@ -91,13 +94,12 @@ def _entry(a_dist: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Ar
     return first.astype(jnp.int32), jnp.where(on_graph, START, -1).astype(jnp.int32), budget.astype(jnp.float32)
 
 
-def agent_init(dist: Callable, graph: Graph, cfg: AgentConfig, s: jax.Array, g: jax.Array,
-               use_graph: jax.Array = True, kappa: Optional[jax.Array] = None) -> AgentState:
+def agent_init(dist: Callable, graph: Graph, s: jax.Array, g: jax.Array, kappa: jax.Array,
+               use_graph: jax.Array = True) -> AgentState:
     """Plan from latent ``s [L]`` to latent ``g [L]`` on ``graph`` (one environment); the start leg's
-    budget uses ``kappa`` (default ``cfg.kappa``)."""
-    kappa = cfg.kappa if kappa is None else kappa
+    budget uses ``kappa`` (per environment: an ablation is a row of the batch)."""
     d_kk, nxt = planning.floyd_warshall(graph.w)
-    from_s, to_g, direct = planning.attach(dist, graph.z, graph.mask, s, g, cfg.tau)
+    from_s, to_g, direct = planning.attach(dist, graph.z, graph.mask, s, g, graph.tau)
     node, prev, budget = _entry(d_kk, from_s, to_g, direct, kappa)
     node = jnp.where(use_graph, node, -1).astype(jnp.int32)
     prev = jnp.where(use_graph, prev, -1).astype(jnp.int32)
@@ -147,8 +149,8 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     slot = jnp.where(edge_over & (used < MAX_CUTS), used, MAX_CUTS)  # out of range: dropped
     cuts = a.cuts.at[slot].set(jnp.stack([i, j]).astype(jnp.int32), mode='drop')
     # re-attach from here (used on a start-leg overrun only; 2 K + 2 distances per step)
-    from_s = planning.attach_start(dist, graph.z, graph.mask & ~banned, s, cfg.tau)
-    direct = planning.direct_edge(dist, s, a.goal, cfg.tau)
+    from_s = planning.attach_start(dist, graph.z, graph.mask & ~banned, s, graph.tau)
+    direct = planning.direct_edge(dist, s, a.goal, graph.tau)
     e_node, e_prev, e_budget = _entry(a.dist, from_s, to_g, direct, kappa)
     back = edge_over | goal_over
     node = jnp.where(reached, hop, jnp.where(back, a.prev, jnp.where(start_over, e_node, a.node)))
@@ -193,131 +195,3 @@ def replan(a: AgentState, slots: int = 8) -> AgentState:
     return a.replace(dist=d, nxt=n)
 
 
-def make_evaluate(env, encode: Callable, dist: Callable, controller: Callable, cfg: AgentConfig, steps: int,
-                  record_actions: bool = False):
-    """Build the jittable evaluation program.
-
-    Args:
-        env: a :class:`aqm_mjx.envs.MazeEnv`.
-        encode: ``(aux, obs [D]) -> latent [L]``.
-        dist: ``(aux, latent, latent) -> scalar`` time-to-reach.
-        controller: ``(aux, obs [D], subgoal_obs [D], t, key) -> action [A]``.
-        cfg: agent rules; steps: control steps per episode.
-        record_actions: also return the clipped actions ``[T, B, A]`` (benchmarks replay them).
-    Returns:
-        ``run(aux, graph, keys [B, 2, 2], task_ids [B], grids [B, H, W], kappa [B], use_graph [B])
-        -> dict`` with ``success [B]`` (success at the last step), ``pruned [B]``, ``xy [T, B, 2]``
-        and ``node [T, B]``. ``kappa`` and ``use_graph`` per environment put ablations (no pruning
-        with ``kappa = inf``, several kappas, the flat policy) in one batch; ``cfg.kappa`` and
-        ``cfg.use_graph`` are the defaults of :func:`defaults`.
-    """
-
-    def run(aux: Any, graph: Graph, keys, task_ids, grids, kappa, use_graph):
-        d = lambda x, y: dist(aux, x, y)  # noqa: E731
-        k_reset, k_act = keys[:, 0], keys[:, 1]
-        states = jax.vmap(env.reset)(k_reset, task_ids, grids)
-        enc = jax.vmap(lambda o: encode(aux, o))
-        agents = jax.vmap(lambda s, g, u, kp: agent_init(d, graph, cfg, s, g, u, kp))(
-            enc(states.obs), enc(states.goal), use_graph, kappa)
-
-        def body(carry, t):
-            states, agents = carry
-            # PLAN: switch, time and prune per environment, then replan where an edge was cut
-            agents = jax.vmap(lambda a, s, kp: agent_step(d, graph, cfg, a, s, kp))(agents, enc(states.obs), kappa)
-            agents = replan(agents, cfg.replan_slots)
-            agents = jax.vmap(redirect)(agents, kappa)
-            sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], states.goal)
-            # ACT and STEP
-            keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)
-            actions = jnp.clip(jax.vmap(lambda o, g, k: controller(aux, o, g, t, k))(states.obs, sub, keys_t), -1.0, 1.0)
-            states = jax.vmap(env.step)(states, actions)
-            trace = (states.data.qpos[:, :2], agents.node) + ((actions,) if record_actions else ())
-            return (states, agents), trace
-
-        (states, agents), trace = jax.lax.scan(body, (states, agents), jnp.arange(steps))
-        out = dict(success=states.success, pruned=agents.pruned, cuts=agents.cuts, xy=trace[0], node=trace[1],
-                   goal_xy=states.goal_xy)
-        if record_actions:
-            out['actions'] = trace[2]
-        return out
-
-    return run
-
-
-def split_keys(key: jax.Array, n: int) -> jax.Array:
-    """``[n, 2, 2]`` keys: (reset, actions) per episode."""
-    return jax.random.split(key, (n, 2))
-
-
-def episode_inputs(key: jax.Array, task_ids, grids, kappa, use_graph) -> tuple:
-    """``(keys, task_ids, grids, kappa, use_graph)`` for ``run`` with fixed dtypes (int32, int8,
-    float32, bool), so that new tasks, seeds, walls or kappas never change the compiled signature."""
-    task_ids = jnp.asarray(task_ids, jnp.int32)
-    n = task_ids.shape[0]
-    grids = jnp.asarray(grids, jnp.int8)
-    if grids.ndim == 2:
-        grids = jnp.broadcast_to(grids, (n,) + grids.shape)
-    kappa = jnp.broadcast_to(jnp.asarray(kappa, jnp.float32), (n,))
-    use_graph = jnp.broadcast_to(jnp.asarray(use_graph, bool), (n,))
-    return split_keys(key, n), task_ids, grids, kappa, use_graph
-
-
-def defaults(cfg: AgentConfig, n: int) -> tuple[jax.Array, jax.Array]:
-    """Per-environment ``(kappa [n], use_graph [n])`` from the config."""
-    return jnp.full((n,), cfg.kappa, jnp.float32), jnp.full((n,), cfg.use_graph, bool)
-
-
-# ------------------------------------------------------------------ exact maze distance (no learning)
-def maze_distance_aux(grid, sub: int = 4, speed: float = 0.12) -> dict:
-    """A stand-in quasimetric: exact shortest-path length in ``grid`` (``sub x sub`` squares per
-    cell) divided by ``speed`` (m per control step), i.e. a time-to-reach in control steps.
-    Use with :func:`maze_encode` and :func:`maze_dist`."""
-    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
-
-    return dict(table=jnp.asarray(mazes.geodesic_table(grid, sub)) / speed,
-                grid_shape=jnp.array(jnp.shape(grid), jnp.int32), sub=jnp.int32(sub))
-
-
-def maze_encode(aux: dict, obs: jax.Array) -> jax.Array:
-    """``obs [D]`` -> ``[1]`` float index of its square in :func:`maze_distance_aux`'s table."""
-    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
-
-    return mazes.xy_to_subcell(obs[:2], aux['grid_shape'], aux['sub'], xp=jnp).astype(jnp.float32)[None]
-
-
-def maze_dist(aux: dict, x: jax.Array, y: jax.Array) -> jax.Array:
-    return aux['table'][x[0].astype(jnp.int32), y[0].astype(jnp.int32)]
-
-
-def maze_graph(grid, delta: float = 4.0, speed: float = 0.12, sub: int = 4, max_keypoints: int = 128,
-               obs_size: int = 29, seed: int = 0) -> tuple[dict, Graph]:
-    """IWE keypoints and their tau = 2 delta graph under the exact maze distance of ``grid``.
-
-    Args:
-        delta: repel radius in metres (converted to steps with ``speed``).
-    Returns:
-        (aux for :func:`maze_encode` / :func:`maze_dist`, :class:`Graph` whose keypoint observations
-        hold the squares' centre x-y in their first two entries, zeros elsewhere).
-    """
-    import numpy as np  # pylint: disable=import-outside-toplevel
-
-    from aqm_mjx import graph as graphs  # pylint: disable=import-outside-toplevel
-    from aqm_mjx import keypoints  # pylint: disable=import-outside-toplevel
-    from aqm_mjx.envs import mazes  # pylint: disable=import-outside-toplevel
-
-    aux = maze_distance_aux(grid, sub, speed)
-    free = np.flatnonzero(np.isfinite(np.asarray(aux['table'])).any(1))
-    cand = jnp.asarray(free, jnp.float32)[:, None]
-    d = lambda x, y: maze_dist(aux, x, y)  # noqa: E731
-    d_steps = delta / speed
-    kp = keypoints.iwe(d, cand, jax.random.PRNGKey(seed), d_steps, max_keypoints)
-    if bool(kp.overflow):
-        raise ValueError(f'more than {max_keypoints} keypoints at delta {delta} m; raise max_keypoints')
-    idx = free[np.asarray(kp.index)[np.asarray(kp.mask)]]
-    k = len(idx)
-    z = jnp.asarray(idx, jnp.float32)[:, None]
-    mask = jnp.ones(k, bool)
-    w = graphs.build_graph(d, z, mask, d_steps)
-    obs = np.zeros((k, obs_size), np.float32)
-    obs[:, :2] = mazes.subcell_to_xy(idx, np.shape(grid), sub)
-    return aux, Graph(z=z, obs=jnp.asarray(obs), mask=mask, w=w)

@@ -11,10 +11,10 @@ exactly ``steps`` control steps with the episode never ending at a goal (OGBench
 - ``explore``: a random unit direction redrawn every 10 steps, action noise 1.0.
 
 The expert is fed the unit direction to the next BFS cell (the goal itself inside the goal cell):
-for the ant the scripted trot (:func:`aqm_mjx.expert.gait_action`), for the point agent the direction
+for the ant the scripted trot (:func:`aqm_mjx.data.expert.gait_action`), for the point agent the direction
 itself, as in OGBench. Actions are ``clip(expert + N(0, noise), -1, 1)``. Recorded per step: the
 observation and ``qpos``/``qvel`` before the step, the action, and ``terminals`` True at the last
-step of each episode: OGBench's file layout, written by :func:`aqm_mjx.dataset.write_ogbench`.
+step of each episode: OGBench's file layout, written by :func:`aqm_mjx.data.dataset.write_ogbench`.
 
 Episode ``e`` uses the key ``fold_in(PRNGKey(seed), e)``, so the data do not depend on how many
 episodes run side by side. ``episodes`` training episodes are followed by ``episodes // 10``
@@ -33,8 +33,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import dataset as ds_io
-from aqm_mjx import envs, expert
+from aqm_mjx import envs
+from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.data import expert
 from aqm_mjx.envs import mazes
 
 STYLES = ('navigate', 'stitch', 'explore')

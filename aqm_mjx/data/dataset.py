@@ -241,3 +241,18 @@ def sample(ds: Dataset, key: jax.Array, batch_size: int, cfg: GoalSampling = Goa
     obs = ds.observations
     return Batch(observations=obs[idx], actions=ds.actions[idx], next_observations=obs[idx + 1], goals=obs[goal],
                  subgoals=obs[sub], index=idx, goal_index=goal, subgoal_index=sub, goal_kind=kind.astype(jnp.int32))
+
+
+def infer_env(path: str) -> tuple[str, Optional[str]]:
+    """``.../antmaze-large-navigate-v0.npz`` -> ``('antmaze-large', 'navigate')`` (OGBench's file names)."""
+    from aqm_mjx.envs import parse_name  # pylint: disable=import-outside-toplevel
+
+    base = os.path.basename(path)
+    parts = (base[:-4] if base.endswith('.npz') else base).split('-')
+    name = '-'.join(parts[:2])
+    try:
+        parse_name(name)
+    except ValueError:
+        raise ValueError(f'cannot infer the environment from {path!r}; pass --env (e.g. antmaze-medium)') from None
+    style = parts[2] if len(parts) > 2 and parts[2] in ('navigate', 'stitch', 'explore') else None
+    return name, style

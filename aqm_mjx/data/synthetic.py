@@ -93,24 +93,3 @@ def point_walks(maze: str = 'medium', n_traj: int = 40, t_len: int = 50, step: f
     act = np.zeros_like(xy)
     act[:, :-1] = np.clip(np.diff(xy, axis=1) / (2 * step), -1, 1)
     return dict(observations=obs, actions=act.reshape(-1, 2).astype(np.float32), terminals=term.reshape(-1))
-
-
-def demo_run(out: str, steps: int = 200, seed: int = 0) -> tuple[str, str]:
-    """A tiny trained point-maze model for notebooks and smoke tests (seconds on a CPU).
-
-    Writes ``OUT/pointmaze-medium-navigate.npz`` (:func:`point_walks`, 200 walks of 100 states) and
-    trains the ``tiny`` preset for ``steps`` updates into ``OUT/train``. The walks ignore walls, so
-    the model shows the wiring, not a skill. Returns (run folder, dataset path).
-    """
-    import os  # pylint: disable=import-outside-toplevel
-
-    from aqm_mjx import train  # pylint: disable=import-outside-toplevel
-
-    os.makedirs(out, exist_ok=True)
-    data = point_walks(n_traj=200, t_len=100, seed=seed)
-    path = os.path.join(out, 'pointmaze-medium-navigate.npz')
-    np.savez(path, **data)
-    run = os.path.join(out, 'train')
-    cfg = train.TrainConfig.preset('tiny', env='pointmaze-medium', steps=steps, seed=seed)
-    train.train(cfg, data, run, dataset_path=path, progress=False, log=lambda *_: None)
-    return run, path

@@ -122,7 +122,8 @@ def _asset_path(name: str) -> str:
     return os.path.join(spec.submodule_search_locations[0], 'locomaze', 'assets', name)
 
 
-def _strip_weak_types(tree):
+def strip_weak_types(tree):
+    """Every array leaf of ``tree`` with its dtype made strong (one compiled step for every call)."""
     # A weakly typed leaf (mjx.Data.time) changes type after one step and makes the second call of a
     # jitted step recompile (mujoco issue 2306); fix every dtype once.
     return jax.tree.map(lambda x: jnp.array(x, dtype=jnp.asarray(x).dtype) if isinstance(x, (jax.Array, np.ndarray)) else x, tree)
@@ -214,7 +215,7 @@ class MazeEnv:
         self.obs_size = self.mj_model.nq + self.mj_model.nv if agent == 'ant' else self.mj_model.nq
         self.action_size = self.mj_model.nu
         self._qpos0 = jnp.asarray(self.mj_model.qpos0, jnp.float32)
-        self._template = _strip_weak_types(mjx.make_data(self.mjx_model))
+        self.template = strip_weak_types(mjx.make_data(self.mjx_model))
         self._layout = jnp.asarray(self.layout)
         self._task_init_xy = jnp.asarray([t.init_xy for t in self.tasks], jnp.float32)
         self._task_goal_xy = jnp.asarray([t.goal_xy for t in self.tasks], jnp.float32)
@@ -275,14 +276,15 @@ class MazeEnv:
         qvel = self.reset_noise * jax.random.normal(k_vel, (self.mj_model.nv,))
         return qpos, qvel
 
-    def _set(self, qpos, qvel):
-        t = self._template
+    def set_state(self, qpos, qvel):
+        """``mjx.Data`` at ``qpos [nq]``, ``qvel [nv]`` (the rest from the model's template)."""
+        t = self.template
         return t.replace(qpos=qpos.astype(t.qpos.dtype), qvel=qvel.astype(t.qvel.dtype))
 
     def goal_observation(self, key: jax.Array, goal_xy: jax.Array) -> jax.Array:
         """OGBench's goal observation ``[obs_size]``: reset, 5 random actions, agent moved to ``goal_xy``."""
         k_state, k_act = jax.random.split(key)
-        data = self._set(*self._noisy_state(k_state))
+        data = self.set_state(*self._noisy_state(k_state))
         if self.agent == 'ant':
             # OGBench takes these steps at the origin, a cell centre 2 m from any wall, which the ant
             # cannot reach in 5 steps: with the proxies parked the physics is the same.
@@ -344,7 +346,7 @@ class MazeEnv:
         goal = self.goal_observation(k_goal, goal_xy)
         qpos, qvel = self._noisy_state(k_init)
         qpos = qpos.at[:2].set(init_xy)
-        data = self._set(qpos, qvel)
+        data = self.set_state(qpos, qvel)
         f32 = jnp.float32
         return State(data=data, obs=self._obs(data), goal=goal, goal_xy=goal_xy, grid=grid, key=k_env,
                      steps=jnp.zeros((), jnp.int32), success=jnp.zeros((), f32), done=jnp.zeros((), bool),

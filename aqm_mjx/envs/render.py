@@ -12,7 +12,7 @@ import numpy as np
 from aqm_mjx.envs import mazes
 
 
-def _plt():
+def pyplot():
     import matplotlib  # pylint: disable=import-outside-toplevel
 
     if matplotlib.get_backend().lower() not in ('agg', 'module://matplotlib_inline.backend_inline'):
@@ -117,14 +117,14 @@ def render_maze(grid, path: Optional[str] = None, *, figsize=None, dpi: int = 10
     Returns:
         The matplotlib Figure (closed after saving when ``path`` is given).
     """
-    plt = _plt()
+    plt = pyplot()
     h, w = np.asarray(grid).shape
     fig, ax = plt.subplots(figsize=figsize or (0.5 * w + 1.5, 0.5 * h + 1.0), dpi=dpi)
     draw_maze(ax, grid, **kwargs)
     handles, labels = ax.get_legend_handles_labels()
     if handles:
         ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
-    return _finish(plt, fig, path)
+    return finish(plt, fig, path)
 
 
 def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, ncols: int = 3, dpi: int = 100):
@@ -136,7 +136,7 @@ def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, n
             ``grid`` entry replaces the shared grid in that panel, e.g. a shifted layout).
         path: PNG to write (the figure is then closed).
     """
-    plt = _plt()
+    plt = pyplot()
     h, w = np.asarray(grid).shape
     n = len(panels)
     ncols = min(ncols, n)
@@ -148,10 +148,11 @@ def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, n
         draw_maze(ax, kw.pop('grid', grid), **kw)
     for ax in axes.ravel()[n:]:
         ax.axis('off')
-    return _finish(plt, fig, path)
+    return finish(plt, fig, path)
 
 
-def _finish(plt, fig, path):
+def finish(plt, fig, path):
+    """Lay out ``fig``, save it to ``path`` when given (and close it there); returns the figure."""
     fig.tight_layout()
     if path is not None:
         fig.savefig(path)

@@ -12,7 +12,7 @@ from aqm_mjx.envs import render
 
 def success_bars(summary: dict, variant: str, tasks: Sequence[int], path: Optional[str] = None, title: str = ''):
     """Grouped bars: success rate per task (and the mean) for every agent, on one variant."""
-    plt = render._plt()  # pylint: disable=protected-access
+    plt = render.pyplot()
     agents = list(summary)
     cols = [f'task_{t}' for t in tasks] + ['mean']
     fig, ax = plt.subplots(figsize=(1.2 * len(cols) + 2.5, 3.2), dpi=100)
@@ -28,13 +28,13 @@ def success_bars(summary: dict, variant: str, tasks: Sequence[int], path: Option
     ax.set_ylabel('success (%)')
     ax.set_title(title or f'success per task ({variant})')
     ax.legend(fontsize=8, frameon=False, loc='upper left', bbox_to_anchor=(1.0, 1.0))
-    return render._finish(plt, fig, path)  # pylint: disable=protected-access
+    return render.finish(plt, fig, path)  # pylint: disable=protected-access
 
 
 def heatmap(rows: Sequence[str], cols: Sequence[str], values: np.ndarray, path: Optional[str] = None,
             title: str = '', xlabel: str = 'evaluation layout', ylabel: str = 'trained on / agent'):
     """Success (%) as a heatmap, rows x columns (the paper's Figure 3 layout)."""
-    plt = render._plt()  # pylint: disable=protected-access
+    plt = render.pyplot()
     v = 100 * np.asarray(values, float)
     fig, ax = plt.subplots(figsize=(1.1 * len(cols) + 2.5, 0.55 * len(rows) + 1.6), dpi=100)
     im = ax.imshow(v, cmap='RdYlGn', vmin=0, vmax=100, aspect='auto')
@@ -47,7 +47,7 @@ def heatmap(rows: Sequence[str], cols: Sequence[str], values: np.ndarray, path: 
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     fig.colorbar(im, ax=ax, label='success (%)')
-    return render._finish(plt, fig, path)  # pylint: disable=protected-access
+    return render.finish(plt, fig, path)  # pylint: disable=protected-access
 
 
 def visited_path(node: np.ndarray) -> np.ndarray:

@@ -12,7 +12,6 @@ is listed but cannot be read is skipped for the previous one, with a warning.
 
 from __future__ import annotations
 
-import json
 import os
 import warnings
 from typing import Any, Optional
@@ -71,18 +70,3 @@ class Checkpointer:
 
     def close(self):
         self._mngr.close()
-
-
-def write_json(path: str, obj: dict) -> None:
-    """Atomic JSON write (the old file stays until the new one is complete)."""
-    tmp = path + '.tmp'
-    with open(tmp, 'w') as f:
-        json.dump(obj, f, indent=1, sort_keys=True)
-    os.replace(tmp, path)
-
-
-def read_json(path: str) -> dict:
-    if not os.path.exists(path):
-        raise CheckpointError(f'{path}: no such file (is this a run folder written by aqm-mjx train?)')
-    with open(path) as f:
-        return json.load(f)

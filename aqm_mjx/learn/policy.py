@@ -1,4 +1,5 @@
-"""Goal-conditioned Gaussian policies and the policy objectives of AQM (paper section 4.4, Table 4).
+"""Goal-conditioned Gaussian policies (paper section 4.4, Appendix 10.1): the network, what it sees
+of the goal, and the Gaussian's log-density and KL.
 
 Policies are MLPs (GELU, no LayerNorm; paper Appendix 10.1) from ``[state, goal input]`` to the mean
 of a diagonal Gaussian. As in OGBench's actors the standard deviation is a constant 1 by default
@@ -13,12 +14,7 @@ learn the rotation from the quaternion itself ignores the goal at CPU scale (mea
 of progress towards an 8 m goal in 100 steps; see RESULTS.md). Observations without a quaternion (the
 point mass, 2-d) keep the world frame.
 
-Objectives, all with the quasimetric ``d`` held fixed (stop-gradient) and weights
-``min(exp(temperature * advantage), clip)``:
-
-- Q-AWR (eq. 5): ``-E[w * log pi(a | s, w)]``, advantage ``d(s, w) - d(s', w)``;
-- Q-SAW (eq. 6): ``E[w * KL(pi(.|s, g) || pi_sub(.|s, w))]``, advantage ``d(s, g) - d(w, g)``;
-- behaviour cloning: ``-E[log pi(a | s, g)]``.
+The objectives that train these policies are in :mod:`aqm_mjx.learn.objectives`.
 """
 
 from __future__ import annotations
@@ -30,7 +26,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.expert import yaw
+from aqm_mjx.data.expert import yaw
 
 CONDITIONING = ('goal', 'direction', 'egocentric')
 QUAT = slice(3, 7)  # torso quaternion (w, x, y, z) in an ant observation (qpos[3:7])
@@ -106,20 +102,3 @@ def kl(mean_p, log_std_p, mean_q, log_std_q) -> jax.Array:
     """``KL(p || q)`` of diagonal Gaussians: ``[..., A]`` -> ``[...]``."""
     var_p, var_q = jnp.exp(2 * log_std_p), jnp.exp(2 * log_std_q)
     return jnp.sum(log_std_q - log_std_p + (var_p + (mean_p - mean_q) ** 2) / (2 * var_q) - 0.5, axis=-1)
-
-
-def advantage_weight(adv: jax.Array, temperature: float, clip: float) -> jax.Array:
-    """``min(exp(temperature * adv), clip)``, computed without overflow."""
-    return jnp.exp(jnp.minimum(temperature * adv, math.log(clip)))
-
-
-def awr_loss(logp: jax.Array, adv: jax.Array, temperature: float, clip: float):
-    """Q-AWR (eq. 5): ``-mean(w * logp)``; ``logp, adv [B]``. Returns ``(loss, weights [B])``."""
-    w = advantage_weight(jax.lax.stop_gradient(adv), temperature, clip)
-    return -jnp.mean(w * logp), w
-
-
-def saw_loss(kl_main_target: jax.Array, adv: jax.Array, temperature: float, clip: float):
-    """Q-SAW (eq. 6): ``mean(w * KL)``; ``kl_main_target, adv [B]``. Returns ``(loss, weights [B])``."""
-    w = advantage_weight(jax.lax.stop_gradient(adv), temperature, clip)
-    return jnp.mean(w * kl_main_target), w

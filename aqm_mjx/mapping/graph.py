@@ -13,8 +13,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from aqm_mjx import keypoints as kp_select
-from aqm_mjx.keypoints import Dist, Keypoints
+from aqm_mjx.mapping.keypoints import Dist, Keypoints
 
 
 @struct.dataclass
@@ -26,12 +25,15 @@ class Graph:
         obs: ``[K, D]`` keypoint observations (what the controller is given as a subgoal).
         mask: bool ``[K]`` valid keypoints.
         w: ``[K, K]`` edge weights (``inf``: no edge).
+        tau: float32 ``[]`` the edge radius it was built with, also the radius within which an agent
+            attaches its state and goal to it.
     """
 
     z: jax.Array
     obs: jax.Array
     mask: jax.Array
     w: jax.Array
+    tau: jax.Array
 
 
 def pairwise(dist: Dist, a: jax.Array, b: jax.Array) -> jax.Array:
@@ -103,42 +105,6 @@ def edge_list(weights, mask=None):
     return np.argwhere(e)
 
 
-SELECTORS = ('iwe', 'fps', 'random')
-
-
-def keypoint_graph(dist: Dist, latents: jax.Array, observations: jax.Array, key: jax.Array, delta: float,
-                   max_keypoints: int, tau: float | None = None, selector: str = 'iwe',
-                   valid: jax.Array | None = None) -> tuple[Graph, Keypoints]:
-    """Select keypoints among encoded dataset states and join them (one pure, jittable stage).
-
-    Args:
-        dist: pairwise latent quasimetric.
-        latents: ``[N, L]`` encoded candidate states; observations: ``[N, D]`` the same states.
-        key: PRNG key of the selector.
-        delta: repel radius (IWE, FPS); tau: edge radius (``2 delta`` when None).
-        max_keypoints: static K (``random`` selects exactly K).
-        selector: ``'iwe'`` (Algorithm 2), ``'fps'`` (farthest point) or ``'random'`` (uniform).
-        valid: optional bool ``[N]`` real candidates.
-    Returns:
-        (:class:`Graph` with ``[K, ...]`` arrays, invalid rows zero and their edges ``inf``;
-        the :class:`~aqm_mjx.keypoints.Keypoints` selected).
-    """
-    if selector == 'iwe':
-        kp = kp_select.iwe(dist, latents, key, delta, max_keypoints, valid)
-    elif selector == 'fps':
-        kp = kp_select.farthest_point(dist, latents, key, delta, max_keypoints, valid)
-    elif selector == 'random':
-        kp = kp_select.uniform_random(latents, key, max_keypoints, valid)
-    else:
-        raise ValueError(f'unknown keypoint selector {selector!r}; expected one of {", ".join(SELECTORS)}')
-    idx = jnp.maximum(kp.index, 0)
-    keep = kp.mask[:, None]
-    z = jnp.where(keep, latents[idx], 0.0)
-    obs = jnp.where(keep, observations[idx], 0.0)
-    w = build_graph(dist, z, kp.mask, delta, tau=tau)
-    return Graph(z=z, obs=obs, mask=kp.mask, w=w), kp
-
-
 def trim(graph: Graph, size: int) -> Graph:
     """The first ``size`` keypoint slots of a graph (host side, outside jit): selectors fill slots
     in order, so trimming a padded ``[K, ...]`` graph to its count (rounded up to a multiple of 8,
@@ -146,7 +112,8 @@ def trim(graph: Graph, size: int) -> Graph:
     count = int(jnp.sum(graph.mask))
     if not count <= size <= graph.mask.shape[0] or bool(jnp.any(graph.mask[size:])):
         raise ValueError(f'cannot trim a graph with {count} keypoints (valid slots not first?) to {size} slots')
-    return Graph(z=graph.z[:size], obs=graph.obs[:size], mask=graph.mask[:size], w=graph.w[:size, :size])
+    return Graph(z=graph.z[:size], obs=graph.obs[:size], mask=graph.mask[:size], w=graph.w[:size, :size],
+                 tau=graph.tau)
 
 
 def pad(graph: Graph, size: int) -> Graph:
@@ -158,4 +125,4 @@ def pad(graph: Graph, size: int) -> Graph:
     extra = size - k
     return Graph(z=jnp.pad(graph.z, ((0, extra), (0, 0))), obs=jnp.pad(graph.obs, ((0, extra), (0, 0))),
                  mask=jnp.pad(graph.mask, (0, extra)),
-                 w=jnp.pad(graph.w, ((0, extra), (0, extra)), constant_values=jnp.inf))
+                 w=jnp.pad(graph.w, ((0, extra), (0, extra)), constant_values=jnp.inf), tau=graph.tau)

@@ -1,0 +1,101 @@
+"""Episodes of the AQM agent, vectorised: physics, encoder, the agent's rules (:mod:`.rules`) and
+the controller in one jitted program, ``lax.scan`` over control steps and ``vmap`` over
+environments, with no host round trip per step.
+
+    run = make_rollout(env, agent, AgentConfig(), steps=1000)
+    out = jax.jit(run)(agent.aux, graph, episode_inputs(episode_keys(key, ids), task_ids, grids, kappa, use_graph))
+
+Each environment carries its own task, walls, budget slack and whether it uses the graph, so
+ablations (no pruning: ``kappa = inf``; the flat policy: ``use_graph = False``) and shifted layouts
+are rows of one batch.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from aqm_mjx.agent.rules import AgentConfig, agent_init, agent_step, redirect, replan
+from aqm_mjx.interface import Agent
+from aqm_mjx.mapping.graph import Graph
+
+
+class EpisodeInputs(NamedTuple):
+    """Per-environment inputs of a rollout; a leading ``[B]`` on every field."""
+
+    keys: jax.Array  # uint32 [B, 2, 2]: (reset, action) keys
+    task_ids: jax.Array  # int32 [B]: OGBench task ids (1-based)
+    grids: jax.Array  # int8 [B, H, W]: each environment's maze
+    kappa: jax.Array  # float32 [B]: budget slack (inf: no pruning)
+    use_graph: jax.Array  # bool [B]: False: the flat policy
+
+
+def episode_keys(key: jax.Array, ids) -> jax.Array:
+    """``[E, 2, 2]`` (reset, action) keys, episode ``i`` from ``fold_in(key, ids[i])``: an episode's
+    keys depend on its id alone, not on the batch, the chunking or the number of devices."""
+    return jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 2))(jnp.asarray(ids, jnp.int32))
+
+
+def episode_inputs(keys, task_ids, grids, kappa, use_graph) -> EpisodeInputs:
+    """:class:`EpisodeInputs` with fixed dtypes (uint32, int32, int8, float32, bool), so that new
+    tasks, seeds, walls or kappas never change the compiled signature. ``grids`` may be one
+    ``[H, W]`` maze, ``kappa`` and ``use_graph`` scalars: they are broadcast to the batch."""
+    task_ids = jnp.asarray(task_ids, jnp.int32)
+    n = task_ids.shape[0]
+    grids = jnp.asarray(grids, jnp.int8)
+    if grids.ndim == 2:
+        grids = jnp.broadcast_to(grids, (n,) + grids.shape)
+    return EpisodeInputs(keys=jnp.asarray(keys), task_ids=task_ids, grids=grids,
+                         kappa=jnp.broadcast_to(jnp.asarray(kappa, jnp.float32), (n,)),
+                         use_graph=jnp.broadcast_to(jnp.asarray(use_graph, bool), (n,)))
+
+
+def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions: bool = False):
+    """Build the jittable episode program of ``agent`` in ``env``.
+
+    Args:
+        env: a :class:`aqm_mjx.envs.MazeEnv`.
+        agent: its functions are used; parameters come as ``aux`` at call time.
+        cfg: the agent's rules; steps: control steps per episode.
+        record_actions: also return the clipped actions ``[T, B, A]`` (benchmarks replay them).
+    Returns:
+        ``run(aux, graph, inputs: EpisodeInputs) -> dict`` with ``success [B]`` (at the goal at the
+        last step), ``pruned [B]``, ``cuts [B, MAX_CUTS, 2]``, ``xy [T, B, 2]``, ``node [T, B]``
+        and ``goal_xy [B, 2]``.
+    """
+    slots = cfg.slots
+
+    def run(aux: Any, graph: Graph, inputs: EpisodeInputs):
+        d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
+        kappa = inputs.kappa
+        k_reset, k_act = inputs.keys[:, 0], inputs.keys[:, 1]
+        states = jax.vmap(env.reset)(k_reset, inputs.task_ids, inputs.grids)
+        enc = jax.vmap(lambda o: agent.encode(aux, o))
+        agents = jax.vmap(lambda s, g, kp, u: agent_init(d, graph, s, g, kp, u))(
+            enc(states.obs), enc(states.goal), kappa, inputs.use_graph)
+
+        def body(carry, t):
+            states, agents = carry
+            # PLAN: switch, time and prune per environment, then replan where an edge was cut
+            agents = jax.vmap(lambda a, s, kp: agent_step(d, graph, cfg, a, s, kp))(agents, enc(states.obs), kappa)
+            agents = replan(agents, slots)
+            agents = jax.vmap(redirect)(agents, kappa)
+            sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], states.goal)
+            # ACT and STEP
+            keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)
+            actions = jax.vmap(lambda o, g, k: agent.controller(aux, o, g, t, k))(states.obs, sub, keys_t)
+            actions = jnp.clip(actions, -1.0, 1.0)
+            states = jax.vmap(env.step)(states, actions)
+            trace = (states.data.qpos[:, :2], agents.node) + ((actions,) if record_actions else ())
+            return (states, agents), trace
+
+        (states, agents), trace = jax.lax.scan(body, (states, agents), jnp.arange(steps))
+        out = dict(success=states.success, pruned=agents.pruned, cuts=agents.cuts, xy=trace[0], node=trace[1],
+                   goal_xy=states.goal_xy)
+        if record_actions:
+            out['actions'] = trace[2]
+        return out
+
+    return run

@@ -1,0 +1,52 @@
+"""What an evaluation shows a person: the summary table, ``results.json`` and the pictures."""
+
+from __future__ import annotations
+
+import os
+from typing import Optional
+
+import jax
+import numpy as np
+
+from aqm_mjx.files import write_json
+from aqm_mjx.evaluation import plots
+from aqm_mjx.evaluation.evaluate import Results
+from aqm_mjx.mapping.graph import Graph, edge_list
+
+
+def print_summary(res: Results, log=print) -> None:
+    """One line per agent and layout: success per task, the mean, and mean edges pruned."""
+    cols = [f'task_{t}' for t in res.tasks] + ['mean', 'pruned_mean']
+    width = max(len(a) for a in res.agents) + max(len(v) for v in res.variants) + 3
+    log(f'{"agent / layout":<{width}}' + ''.join(f'{c.replace("_mean", ""):>9}' for c in cols))
+    for a in res.agents:
+        for v in res.variants:
+            row = res.summary[a][v]
+            cells = [f'{100 * row[c]:8.0f}%' for c in cols[:-1]] + [f'{row["pruned_mean"]:9.2f}']
+            log(f'{a + " / " + v:<{width}}' + ''.join(cells))
+
+
+def write(res: Results, graph: Graph, layout, variants: dict, out: str, env_name: str, episodes: int,
+          info: dict, name: Optional[str] = None) -> dict:
+    """Write ``out/results.json``, ``success.png``, ``trajectories.png`` and, with several layouts,
+    ``heatmap.png``. ``info`` is merged into the JSON (config, checkpoint, keypoints, ...).
+    Returns the report written."""
+    os.makedirs(out, exist_ok=True)
+    mask = np.asarray(graph.mask)
+    nodes_xy = np.asarray(graph.obs)[:, :2]
+    edges = edge_list(graph.w, mask)
+    report = dict(env=env_name, **info, edges=int(len(edges)), agents=res.agents, variants=res.variants,
+                  tasks=res.tasks, summary=res.summary, timing=res.timing, backend=jax.default_backend(),
+                  device=str(jax.devices()[0]), device_count=jax.device_count())
+    write_json(os.path.join(out, 'results.json'), report)
+    first = res.variants[0]
+    plots.success_bars(res.summary, first, res.tasks, os.path.join(out, 'success.png'),
+                       title=f'{env_name} ({first}): success per task, {episodes} episodes each')
+    plots.trajectory_panels(layout, variants, res.traces, nodes_xy, edges, 'aqm', res.tasks[0],
+                            os.path.join(out, 'trajectories.png'))
+    if len(variants) > 1:
+        vals = np.array([[res.summary[a][v]['mean'] for v in res.variants] for a in res.agents])
+        plots.heatmap([f'{name}: {a}' if name else a for a in res.agents], res.variants, vals,
+                      os.path.join(out, 'heatmap.png'),
+                      title=f'{env_name}: trained on base, evaluated on each layout (mean success)')
+    return report

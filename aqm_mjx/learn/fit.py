@@ -1,0 +1,216 @@
+"""Training: the one chunk scan, the whole training as a pure scan, and the host loop around it
+(progress bar, JSON-lines metrics, Orbax checkpoints, resume, skip when complete).
+
+    trained = fit.train('aqm', cfg, data, 'runs/medium/train', resume='auto')
+    trained.agent                                 # the Agent with the final parameters
+
+A run folder holds ``config.json`` (method name, config, shapes, dataset path), ``metrics.jsonl``
+and ``checkpoints/<step>/``; :func:`load` rebuilds a trained method from the folder alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from typing import Any, Callable, NamedTuple, Optional, Union
+
+import jax
+import jax.numpy as jnp
+
+from aqm_mjx import files
+from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.interface import Agent
+from aqm_mjx.learn import checkpoint as ckpt
+from aqm_mjx.learn import methods
+from aqm_mjx.learn.learner import Learner
+
+FORMAT = 'aqm_mjx.train/1'
+
+
+# ------------------------------------------------------------------------------------ pure parts
+def chunk_step(update: Callable, length: int) -> Callable:
+    """``(state, ds) -> (state, metrics)``: ``length`` updates under ``lax.scan``, each metric
+    averaged over them. The host loop jits it; :func:`train_scan` scans it."""
+
+    def run(state, ds):
+        state, metrics = jax.lax.scan(lambda st, _: update(st, ds), state, None, length=length)
+        return state, jax.tree.map(jnp.mean, metrics)
+
+    return run
+
+
+def train_scan(learner: Learner, key: jax.Array, ds: ds_io.Dataset, progress: Optional[Callable] = None):
+    """``learner.init(key)``, then the whole run as a ``lax.scan`` over its chunks (pure, jittable).
+
+    ``progress(step)``, if given, is called from the device through ``jax.debug.callback`` after
+    each chunk (a host function captured at trace time: it never causes a recompile).
+    Returns the final state and each metric's mean over the last chunk.
+    """
+    cfg = learner.config
+    chunk = chunk_step(learner.update, cfg.updates_per_call)
+
+    def body(state, _):
+        state, m = chunk(state, ds)
+        if progress is not None:
+            jax.debug.callback(progress, state.step)
+        return state, m
+
+    state, metrics = jax.lax.scan(body, learner.init(key), None, length=cfg.chunks)
+    return state, jax.tree.map(lambda x: x[-1], metrics)
+
+
+# ------------------------------------------------------------------------------------- host loop
+class Trained(NamedTuple):
+    """A trained method: its entry, config, learner, state and where it came from."""
+
+    method: str
+    config: Any
+    learner: Learner
+    state: Any
+    step: int
+    meta: dict
+
+    @property
+    def params(self):
+        return self.learner.params(self.state)
+
+    @property
+    def agent(self) -> Agent:
+        return self.learner.agent(self.params)
+
+
+def _meta(method: str, cfg, obs_size: int, action_size: int, dataset_path: Optional[str]) -> dict:
+    return dict(method=method, config=cfg.to_dict(), obs_size=int(obs_size), action_size=int(action_size),
+                dataset=dataset_path, format=FORMAT)
+
+
+def read_meta(out: str) -> tuple[methods.Method, Any, dict]:
+    """``(method entry, config, meta)`` of a run folder's ``config.json``."""
+    meta = files.read_json(os.path.join(out, 'config.json'))
+    method = methods.get(meta.get('method', 'aqm'))
+    return method, method.from_dict(meta['config']), meta
+
+
+def _trim_metrics(path: str, step: int) -> None:
+    """Keep the metric lines up to ``step`` (a resumed run re-logs what came after its checkpoint)."""
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        lines = [ln for ln in f if ln.strip() and json.loads(ln).get('step', 0) <= step]
+    tmp = path + '.tmp'
+    with open(tmp, 'w') as f:
+        f.writelines(lines)
+    os.replace(tmp, path)
+
+
+def checkpoint_steps(out: str) -> list[int]:
+    """Steps of the finished checkpoints in a run folder (empty when there is none)."""
+    if not os.path.isdir(os.path.join(out, 'checkpoints')):
+        return []
+    saver = ckpt.Checkpointer(out, keep=None, create=False)
+    try:
+        return saver.steps()
+    finally:
+        saver.close()
+
+
+def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, resume: Union[bool, str] = False,
+          steps: Optional[int] = None, dataset_path: Optional[str] = None, progress: bool = True, log=print,
+          key: Optional[jax.Array] = None) -> Trained:
+    """Train, resume or skip a run in folder ``out``: the one place that decides which.
+
+    Args:
+        method: a registry name or entry.
+        cfg: the run's config (on resume the saved one is used; ``steps`` may extend it).
+        data: raw arrays from :func:`aqm_mjx.data.dataset.read_ogbench` or a collector.
+        out: run folder (``config.json``, ``metrics.jsonl``, ``checkpoints/``).
+        resume: False: a new run (refused when ``out`` holds checkpoints); True: continue from the
+            newest readable checkpoint; ``'auto'``: continue when there are checkpoints, else start.
+            A run already at its last step is restored and returned without training.
+        steps: override the total number of updates.
+        key: the initialisation key (default ``PRNGKey(cfg.seed)``; the pipeline passes its train
+            key so that both paths of a run start alike). Ignored on resume.
+    Returns:
+        :class:`Trained` with the final state.
+    """
+    method = methods.get(method) if isinstance(method, str) else method
+    ds = ds_io.to_device(data)  # validates, and refuses a dataset without transitions
+    obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
+    cfg_path = os.path.join(out, 'config.json')
+    metrics_path = os.path.join(out, 'metrics.jsonl')
+    done = checkpoint_steps(out)
+    if resume == 'auto':
+        resume = bool(done)
+    if resume:
+        saved_method, cfg, meta = read_meta(out)
+        method = saved_method
+        if (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
+            raise ValueError(f'{out} was trained on {meta["obs_size"]}-d observations and {meta["action_size"]}-d '
+                             f'actions; this dataset has {obs_size} and {action_size}')
+    elif done:
+        raise FileExistsError(f'{out} already holds checkpoints; pass --resume to continue it or choose a new --out')
+    if cfg is None:
+        raise ValueError('a config is needed for a new run')
+    if steps is not None:
+        cfg = dataclasses.replace(cfg, steps=int(steps))
+    os.makedirs(out, exist_ok=True)
+    learner = method.make(cfg, obs_size, action_size)
+    meta = _meta(method.name, cfg, obs_size, action_size, dataset_path)
+    saver = ckpt.Checkpointer(out, keep=cfg.keep)
+    state = learner.init(jax.random.PRNGKey(cfg.seed) if key is None else key)
+    if resume:
+        step, state, _ = saver.restore(state, log=log)
+        log(f'resumed {out} at step {step}' if step < cfg.steps else f'{out} is complete at step {step}')
+        _trim_metrics(metrics_path, step)
+    files.write_json(cfg_path, meta)
+    start = int(state.step)
+    if start % cfg.updates_per_call:
+        raise ValueError(f'checkpoint step {start} is not a multiple of updates_per_call {cfg.updates_per_call}')
+    chunk = jax.jit(chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
+    bar = None
+    if progress and start < cfg.steps:
+        from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+
+        bar = tqdm(total=cfg.steps, initial=start, desc=f'train {method.name} {cfg.preset}', unit='upd',
+                   smoothing=0.1)
+    t_last, first = time.perf_counter(), True
+    with open(metrics_path, 'a') as mf:
+        while int(state.step) < cfg.steps:
+            state, m = chunk(state, ds)
+            m = {k: float(v) for k, v in jax.device_get(m).items()}
+            step = int(state.step)
+            now = time.perf_counter()
+            m['time/updates_per_s'] = cfg.updates_per_call / (now - t_last)
+            m['time/includes_compile'] = first
+            t_last, first = now, False
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                mf.write(json.dumps({'step': step, 'preset': cfg.preset, **m}) + '\n')
+                mf.flush()
+            if bar is not None:
+                bar.update(cfg.updates_per_call)
+                shown = {k.split('/')[-1]: f'{v:.3g}' for k, v in m.items() if k in PROGRESS_KEYS}
+                bar.set_postfix(shown)
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                saver.save(step, state, meta)
+    if bar is not None:
+        bar.close()
+    saver.close()
+    return Trained(method.name, cfg, learner, state, int(state.step), meta)
+
+
+PROGRESS_KEYS = ('qrl/d_pos_mean', 'qrl/d_goal_mean', 'qrl/lambda', 'policy/main_loss')  # shown on the bar
+
+
+def load(out: str, step: Optional[int] = None, log=print) -> Trained:
+    """A run folder for evaluation: its ``config.json`` and the newest readable checkpoint."""
+    method, cfg, meta = read_meta(out)
+    learner = method.make(cfg, meta['obs_size'], meta['action_size'])
+    template = learner.init(jax.random.PRNGKey(0))
+    saver = ckpt.Checkpointer(out, keep=None, create=False)
+    try:
+        s, state, _ = saver.restore(template, step=step, log=log)
+    finally:
+        saver.close()
+    return Trained(method.name, cfg, learner, state, s, meta)

@@ -1,0 +1,78 @@
+"""What every method provides (the registry's contract) and the training-loop settings they share.
+
+A :class:`Learner` is built from a method's config by ``make(config, obs_size, action_size)``:
+pure ``init`` and ``update`` functions (training composes them under ``lax.scan``), ``params``
+to take the evaluation parameters out of a state, and ``agent`` to turn those into the
+:class:`~aqm_mjx.interface.Agent` that mapping and evaluation use. The config never rides inside a
+jitted pytree: it is captured by the closures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple, Optional
+
+from aqm_mjx import config as cfg_lib
+from aqm_mjx.envs import parse_name
+
+option = cfg_lib.option
+
+
+class Learner(NamedTuple):
+    """Pure functions of one method, built from its config.
+
+    Attributes:
+        config: the method's config (frozen dataclass, :class:`LoopConfig` fields included).
+        init: ``key -> state``: a ``flax.struct`` pytree with a ``step`` (int32) and a ``key``.
+        update: ``(state, dataset: Dataset) -> (state, metrics dict of scalars)``; pure, jittable.
+        params: ``state -> params``, the pytree the agent reads.
+        agent: ``params -> Agent`` (``None``: the functions alone, parameters bound later).
+        modules: the method's flax modules by name (for tools that inspect them).
+    """
+
+    config: Any
+    init: Callable
+    update: Callable
+    params: Callable
+    agent: Callable
+    modules: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopConfig:
+    """Training-loop settings every method shares; a method's config extends it."""
+
+    preset: str = option('cpu', 'the preset these values came from (recorded with every result)')
+    env: Optional[str] = option('antmaze-medium', 'environment the data come from (e.g. sets AQM\'s push offset)')
+    steps: int = option(20_000, 'gradient updates in the run')
+    batch_size: int = option(256, 'transitions per update (paper: 1024)')
+    updates_per_call: int = option(500, 'updates per jitted call (lax.scan length); steps must be a multiple')
+    log_every: int = option(500, 'updates between metric lines (a multiple of updates_per_call)')
+    checkpoint_every: int = option(5_000, 'updates between checkpoints (a multiple of updates_per_call)')
+    keep: int = option(3, 'checkpoints kept')
+    seed: int = option(0, 'initialisation seed of a training run started on its own')
+
+    def __post_init__(self):
+        cfg_lib.check_positive_int(self, 'steps', 'batch_size', 'updates_per_call', 'log_every', 'checkpoint_every',
+                                   'keep')
+        for name in ('steps', 'log_every', 'checkpoint_every'):
+            if getattr(self, name) % self.updates_per_call:
+                raise ValueError(f'{name} ({getattr(self, name)}) must be a multiple of updates_per_call '
+                                 f'({self.updates_per_call})')
+        if self.env is not None:
+            parse_name(self.env)
+
+    @property
+    def chunks(self) -> int:
+        """Jitted calls (chunks of ``updates_per_call`` updates) in the run."""
+        return self.steps // self.updates_per_call
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        return cfg_lib.from_dict(cls, d)
+
+    def with_overrides(self, pairs):
+        return cfg_lib.with_overrides(self, pairs)

@@ -1,0 +1,71 @@
+"""The method registry: a plain dict from a name to how to configure, build and train a method.
+
+    method = methods.get('aqm')
+    cfg = method.preset('cpu', env='antmaze-medium')      # a typed, frozen config
+    learner = method.make(cfg, obs_size, action_size)      # init, update, params, agent
+
+Evaluation sees only the :class:`~aqm_mjx.interface.Agent` that ``learner.agent(params)`` returns,
+so a new method is an entry here (its config, presets and ``make``) and nothing else changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+from aqm_mjx.learn import aqm
+from aqm_mjx.learn.learner import Learner
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """A registry entry.
+
+    Attributes:
+        name: what ``--method`` and ``config.json`` call it.
+        config: its config class (``.preset(name, **overrides)``, ``.from_dict``, ``.to_dict``).
+        make: ``(config, obs_size, action_size) -> Learner``.
+        defaults: config fields this entry sets before the preset's overrides (an ablation's objective).
+        summary: one line for listings.
+    """
+
+    name: str
+    config: type
+    make: Callable[..., Learner]
+    defaults: dict = dataclasses.field(default_factory=dict)
+    summary: str = ''
+
+    def preset(self, preset: str, **overrides):
+        """The config of preset ``preset`` with this entry's defaults, then ``overrides``."""
+        return self.config.preset(preset, **{**self.defaults, **overrides})
+
+    def from_dict(self, d: dict):
+        return self.config.from_dict(d)
+
+
+METHODS: dict[str, Method] = {}
+
+
+def register(method: Method) -> Method:
+    if method.name in METHODS:
+        raise ValueError(f'method {method.name!r} is already registered')
+    METHODS[method.name] = method
+    return method
+
+
+def get(name: str) -> Method:
+    if name not in METHODS:
+        raise ValueError(f'unknown method {name!r}; expected one of {", ".join(METHODS)}')
+    return METHODS[name]
+
+
+def names() -> list[str]:
+    return list(METHODS)
+
+
+register(Method('aqm', aqm.AQMConfig, aqm.make, {'objective': 'saw'},
+                'AQM: IQE quasimetric (QRL), Q-AWR target and Q-SAW main policies'))
+register(Method('aqm-awr', aqm.AQMConfig, aqm.make, {'objective': 'awr'},
+                "AQM's quasimetric with a Q-AWR policy on the goal (ablation)"))
+register(Method('aqm-bc', aqm.AQMConfig, aqm.make, {'objective': 'bc'},
+                "AQM's quasimetric with a behaviour-cloned policy (ablation)"))

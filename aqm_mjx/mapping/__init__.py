@@ -1,0 +1,2 @@
+"""Stage 3, mapping: keypoint selection (``keypoints``), the keypoint graph (``graph``) and the map
+stage that builds it from dataset states (``build``)."""

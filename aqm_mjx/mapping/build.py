@@ -1,0 +1,136 @@
+"""The map stage: dataset states -> candidates -> latents -> keypoints -> graph (one pure function).
+
+    graph, kp = build_map(agent, observations, MapConfig(delta=8.0), key)        # jittable
+    graph, info = trimmed_map(agent, observations, MapConfig(delta=8.0), key)    # jitted, trimmed (host)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from aqm_mjx import config as cfg_lib
+from aqm_mjx.config import option
+from aqm_mjx.interface import Agent
+from aqm_mjx.mapping import keypoints as kps
+from aqm_mjx.mapping.graph import Graph, build_graph, trim
+
+
+def _iwe(dist, latents, key, cfg, valid):
+    return kps.iwe(dist, latents, key, cfg.delta, cfg.max_keypoints, valid)
+
+
+def _iwe_batches(dist, latents, key, cfg, valid):
+    if valid is not None:
+        raise ValueError("selector 'iwe-batches' draws its own candidate batches and takes no validity mask")
+    return kps.iwe_best_of_batches(dist, latents, key, cfg.delta, cfg.max_keypoints, cfg.iwe_batches,
+                                   cfg.iwe_batch_size)
+
+
+def _fps(dist, latents, key, cfg, valid):
+    return kps.farthest_point(dist, latents, key, cfg.delta, cfg.max_keypoints, valid)
+
+
+def _random(dist, latents, key, cfg, valid):
+    del dist
+    return kps.uniform_random(latents, key, cfg.max_keypoints, valid)
+
+
+# name -> (dist, latents [N, L], key, MapConfig, valid [N] or None) -> Keypoints
+SELECTORS = {'iwe': _iwe, 'iwe-batches': _iwe_batches, 'fps': _fps, 'random': _random}
+
+
+@dataclasses.dataclass(frozen=True)
+class MapConfig:
+    """How the keypoint graph is built (paper section 4.3, Appendix 11.5-11.7)."""
+
+    delta: float = option(8.0, 'IWE repel radius in the quasimetric\'s units (control steps); paper: 10-25')
+    tau: float = option(0.0, 'edge and attachment radius; 0: 2 delta (the paper\'s proxy)')
+    max_keypoints: int = option(256, 'static K: keypoint slots (a mask says which are used)')
+    candidates: int = option(10_000, 'dataset states drawn uniformly and encoded as candidates')
+    selector: str = option('iwe', "'iwe' (Algorithm 2 over every candidate), 'iwe-batches' (the paper's "
+                           "App. 11.7: IWE on random batches, the one with most keypoints), 'fps', 'random' "
+                           '(max_keypoints uniform picks)', tuple(SELECTORS))
+    iwe_batches: int = option(8, 'iwe-batches: number of random candidate batches')
+    iwe_batch_size: int = option(1024, "iwe-batches: candidates per batch (the paper's 1024)")
+
+    def __post_init__(self):
+        cfg_lib.check_positive_int(self, 'max_keypoints', 'candidates', 'iwe_batches', 'iwe_batch_size')
+        if not (self.delta > 0 and self.tau >= 0):
+            raise ValueError(f'MapConfig: delta must be > 0 and tau >= 0; got delta={self.delta}, tau={self.tau}')
+        cfg_lib.check_choice('MapConfig', 'selector', self.selector, tuple(SELECTORS))
+
+    @property
+    def edge_radius(self) -> float:
+        """tau: the edge radius of the graph and the attachment radius of starts and goals."""
+        return self.tau if self.tau > 0 else 2.0 * self.delta
+
+
+def keypoint_graph(dist, latents: jax.Array, observations: jax.Array, key: jax.Array, cfg: MapConfig,
+                   valid: jax.Array | None = None) -> tuple[Graph, kps.Keypoints]:
+    """Select keypoints among encoded states and join them (pure, jittable).
+
+    Args:
+        dist: pairwise latent quasimetric ``d(x [L], y [L]) -> scalar``.
+        latents: ``[N, L]`` encoded candidates; observations: ``[N, D]`` the same states.
+        valid: optional bool ``[N]`` real candidates (not for ``iwe-batches``).
+    Returns:
+        (:class:`Graph` with ``[K, ...]`` arrays, invalid slots zero with ``inf`` edges, ``tau`` the
+        edge radius; the :class:`~aqm_mjx.mapping.keypoints.Keypoints` selected).
+    """
+    kp = SELECTORS[cfg.selector](dist, latents, key, cfg, valid)
+    idx = jnp.maximum(kp.index, 0)
+    keep = kp.mask[:, None]
+    z = jnp.where(keep, latents[idx], 0.0)
+    obs = jnp.where(keep, observations[idx], 0.0)
+    tau = cfg.edge_radius
+    w = build_graph(dist, z, kp.mask, cfg.delta, tau=tau)
+    return Graph(z=z, obs=obs, mask=kp.mask, w=w, tau=jnp.float32(tau)), kp
+
+
+def build_map(agent: Agent, observations: jax.Array, cfg: MapConfig, key: jax.Array,
+              aux: Any = None) -> tuple[Graph, kps.Keypoints]:
+    """Keypoints and graph from dataset states (pure, jittable; ``aux`` defaults to the agent's).
+
+    Args:
+        observations: ``[N, D]`` dataset states; ``min(N, cfg.candidates)`` of them, drawn uniformly
+            without replacement, are encoded as candidates.
+    Returns:
+        (:class:`Graph`, :class:`~aqm_mjx.mapping.keypoints.Keypoints` with indices into the candidates).
+    """
+    aux = agent.aux if aux is None else aux
+    k_sub, k_sel = jax.random.split(key)
+    n = observations.shape[0]
+    m = min(n, int(cfg.candidates))
+    idx = jax.random.permutation(k_sub, n)[:m] if m < n else jnp.arange(n)
+    cand = observations[idx]
+    lat = jax.vmap(lambda o: agent.encode(aux, o))(cand)
+    return keypoint_graph(lambda x, y: agent.dist(aux, x, y), lat, cand, k_sel, cfg)
+
+
+@functools.lru_cache(maxsize=16)
+def _jitted_build(agent_fns: tuple, cfg: MapConfig):
+    encode, dist = agent_fns
+    agent = Agent(encode, dist, None)
+    return jax.jit(lambda aux, obs, key: build_map(agent, obs, cfg, key, aux))
+
+
+def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array) -> tuple[Graph, dict]:
+    """:func:`build_map` jitted (one compile per agent functions and config), then trimmed to the
+    keypoint count rounded up to 8 (host side): the rollout's cost grows with K, so the padded
+    ``cfg.max_keypoints`` slots are cut to the ones used.
+
+    Returns:
+        (trimmed graph, ``{'keypoints': count, 'overflow': bool, 'seconds': float}``).
+    """
+    t0 = time.perf_counter()
+    build = _jitted_build((agent.encode, agent.dist), cfg)
+    graph, kp = build(agent.aux, jnp.asarray(observations), key)
+    n_kp = int(kp.count)
+    graph = trim(graph, min(cfg.max_keypoints, -(-n_kp // 8) * 8))
+    return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), seconds=time.perf_counter() - t0)

@@ -1,0 +1,242 @@
+"""The host side of a run: the data stage, then training with checkpoints, the map and the
+evaluation, step by step with progress and resume (:func:`run_stepwise`); the same stages as one
+jitted program (:func:`run_one_program`); and the evaluation of a saved checkpoint
+(:func:`evaluate_checkpoint`). The trained state goes from training to the map and the
+evaluation in memory; keys come from :func:`aqm_mjx.pipeline.stage_keys` on every path.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from aqm_mjx import envs, files
+from aqm_mjx.data import collect
+from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.envs import shifts
+from aqm_mjx.evaluation import report
+from aqm_mjx.evaluation.protocol import plan_episodes
+from aqm_mjx.evaluation.evaluate import device_mesh, evaluate, put_global
+from aqm_mjx.learn import fit
+from aqm_mjx.mapping.build import trimmed_map
+from aqm_mjx.pipeline import PRESETS, RunConfig, make_run, stage_keys, summary
+
+
+# ------------------------------------------------------------------------------------------- data
+def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, batch: int, log=print,
+               style: str = 'navigate') -> str:
+    """The dataset file of a run: ``dataset`` if given, else ``OUT/data/ENV-STYLE.npz``, collected
+    in MJX (``episodes`` + a tenth for validation) unless it is already there."""
+    if dataset:
+        if not os.path.exists(dataset):
+            raise FileNotFoundError(f'dataset {dataset!r} not found')
+        return dataset
+    path = os.path.join(out, 'data', f'{env_name}-{style}.npz')
+    if os.path.exists(path):
+        log(f'[1/4 data] found {path}, not collecting again')
+        return path
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ccfg = collect.CollectConfig(env=env_name, style=style, episodes=episodes, batch=batch).resolved()
+    log(f'[1/4 data] collecting {ccfg.episodes} + {ccfg.val_episodes} {style} episodes x {ccfg.steps} states')
+    res = collect.collect(ccfg)
+    collect.write(res, path)
+    collect.plot(res, path[:-4] + '.png')
+    return path
+
+
+def read_data(path: str, env) -> dict:
+    """An OGBench file's arrays, checked against ``env``'s observation and action sizes."""
+    return ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
+
+
+def variants_for(maze: str, shift: str) -> dict:
+    """``{name: grid}`` of ``--shift``: 'base', 'all' (the maze's suite) or one variant."""
+    return shifts.suite(maze) if shift == 'all' else {shift: shifts.variant(maze, shift)}
+
+
+def preset_for_name(train_preset: str) -> str:
+    """The run preset whose map, agent and protocol defaults match a training preset (runs trained
+    before the presets were renamed say 'tiny' for 'ci'; an unknown name gets 'cpu')."""
+    return train_preset if train_preset in PRESETS else 'ci' if train_preset == 'tiny' else 'cpu'
+
+
+def preset_for(trained: fit.Trained) -> str:
+    """:func:`preset_for_name` of a trained method's training preset."""
+    return preset_for_name(trained.config.preset)
+
+
+# ------------------------------------------------------------------------------ map + evaluation
+def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, variants: dict, k_map, k_eval,
+                     out: str, info: dict, log=print):
+    """The map from ``observations`` and the protocol for a trained method, then the report in
+    ``out`` (``results.json`` and pictures). Returns ``(Results, report dict)``."""
+    agent = trained.agent
+    graph, m = trimmed_map(agent, observations, cfg.map, k_map)
+    if m['overflow']:
+        log(f'warning: {cfg.map.max_keypoints} keypoints did not cover the candidates at delta {cfg.map.delta}; '
+            'raise --max-keypoints or --delta')
+    n_agents = 1 + len(cfg.protocol.ablations)
+    log(f'{env.name}, {trained.method} {trained.config.preset} preset at step {trained.step}: {m["keypoints"]} '
+        f'keypoints at delta {cfg.map.delta} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
+        f'{len(cfg.protocol.tasks) or env.num_tasks} tasks x {cfg.protocol.episodes} episodes on '
+        f'{jax.device_count()} device(s)')
+    res = evaluate(env, agent, graph, cfg.agent, cfg.protocol, variants, key=k_eval)
+    report.print_summary(res, log)
+    info = dict(info, method=trained.method, step=trained.step, train_preset=trained.config.preset,
+                keypoints=m['keypoints'], keypoint_overflow=m['overflow'], map_s=round(m['seconds'], 2),
+                config=cfg.to_dict())
+    rep = report.write(res, graph, env.layout, variants, out, env.name, cfg.protocol.episodes, info,
+                       name=os.path.basename(os.path.normpath(info.get('checkpoint', out))))
+    log(f'wrote {out}/results.json and pictures')
+    return res, rep
+
+
+def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, dataset: Optional[str] = None,
+                        shift: str = 'base', out: Optional[str] = None, seed: int = 0, overrides=(), log=print):
+    """``aqm-mjx evaluate``: load a run folder, map, evaluate, write ``results.json`` and pictures.
+
+    ``cfg`` defaults to the run preset of the checkpoint's training preset, with ``overrides``
+    (``section.field=value``) applied; its ``train`` section is the checkpoint's. The map and
+    episode keys are :func:`~aqm_mjx.pipeline.stage_keys` of ``PRNGKey(seed)``, as in ``aqm-mjx run``.
+    Layouts, tasks and the dataset are checked before anything is loaded or built.
+    """
+    method, train_cfg, meta = fit.read_meta(checkpoint)
+    if train_cfg.env is None:
+        raise ValueError(f'{checkpoint} does not record its environment (config.env); it cannot be evaluated')
+    env = envs.make(train_cfg.env)
+    variants = variants_for(env.maze, shift)
+    path = dataset or meta.get('dataset')
+    if not path or not os.path.exists(path):
+        raise FileNotFoundError(f'keypoints are selected from dataset states: {path!r} not found; pass --dataset')
+    if cfg is None:
+        cfg = RunConfig.preset(preset_for_name(train_cfg.preset), method=method.name, env=train_cfg.env)
+    cfg = RunConfig(method=method.name, train=train_cfg, map=cfg.map, agent=cfg.agent,
+                    protocol=cfg.protocol).with_overrides(list(overrides))
+    plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)  # bad task ids fail before any work
+    trained = fit.load(checkpoint, log=log)
+    data = read_data(path, env)
+    _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
+    info = dict(checkpoint=os.path.abspath(checkpoint), dataset=os.path.abspath(path), seed=seed)
+    return map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval,
+                            out or os.path.join(checkpoint, 'eval'), info, log)
+
+
+# ------------------------------------------------------------------------------------- the run
+def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collect_episodes: int = 100,
+                 collect_batch: int = 55, shift: str = 'base', log=print) -> dict:
+    """``aqm-mjx run``: data -> train (Orbax checkpoints; resumed when interrupted, skipped when
+    complete) -> map -> evaluate, one progress display per stage. The run key is
+    ``PRNGKey(cfg.train.seed)``. Writes ``OUT/run.json`` (the config), ``OUT/summary.json`` and
+    returns the summary."""
+    env_name = cfg.train.env
+    env = envs.make(env_name)
+    variants = variants_for(env.maze, shift)  # a bad --shift or task id fails here, not after training
+    plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)
+    files.write_json(os.path.join(out, 'run.json'), cfg.to_dict(), makedirs=True)
+    times = {}
+    seed = cfg.train.seed
+    k_train, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
+    t0 = time.perf_counter()
+    path = data_stage(env_name, out, dataset, collect_episodes, collect_batch, log)
+    data = read_data(path, env)
+    times['data_s'] = time.perf_counter() - t0
+    # TRAIN (resumed when checkpoints exist; skipped when the run is complete)
+    tdir = os.path.join(out, 'train')
+    t0 = time.perf_counter()
+    done = fit.checkpoint_steps(tdir)
+    log('[2/4 train] ' + (f'{tdir} is complete at step {max(done)}' if done and max(done) >= cfg.train.steps else
+                           f'{"resuming" if done else "training"} {cfg.method} {cfg.train.preset} preset, '
+                           f'{cfg.train.steps} updates'))
+    trained = fit.train(cfg.method, cfg.train, data, tdir, resume='auto', dataset_path=os.path.abspath(path),
+                        key=k_train, log=log)
+    times['train_s'] = time.perf_counter() - t0
+    # MAP + EVALUATE, with the trained state in memory
+    t0 = time.perf_counter()
+    log('[3/4 map] and [4/4 evaluate]')
+    info = dict(checkpoint=os.path.abspath(tdir), dataset=os.path.abspath(path), seed=seed)
+    res, rep = map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval,
+                                os.path.join(out, 'eval'), info, log)
+    times['map_and_evaluate_s'] = time.perf_counter() - t0
+    summary_ = dict(env=env_name, seed=seed, config=cfg.to_dict(), dataset=os.path.abspath(path),
+                    keypoints=rep['keypoints'], success=res.summary,
+                    times_s={k: round(v, 1) for k, v in times.items()},
+                    pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')])
+    files.write_json(os.path.join(out, 'summary.json'), summary_)
+    aqm = res.summary['aqm'][res.variants[0]]
+    log(f'AQM on {env_name} ({res.variants[0]}): {100 * aqm["mean"]:.0f}% mean success ('
+        + ', '.join(f'task {t}: {100 * aqm[f"task_{t}"]:.0f}%' for t in res.tasks) + f'); {rep["keypoints"]} '
+        'keypoints; ' + ', '.join(f'{k[:-2]} {v:.0f} s' for k, v in times.items()))
+    log(f'wrote {out}/summary.json; map and trajectories: {out}/eval/trajectories.png')
+    return summary_
+
+
+def shard_seeds(keys: jax.Array, mesh=None) -> jax.Array:
+    """Place ``keys [S, 2]`` with the seed axis sharded over ``mesh`` (default: every device, the
+    same 1-D ``'env'`` mesh as the evaluation batch); ``jax.jit(jax.vmap(run, in_axes=(0, None)))``
+    then runs each device's seeds there, the dataset replicated. ``S`` must be a multiple of the
+    number of devices."""
+    from jax.sharding import NamedSharding, PartitionSpec  # pylint: disable=import-outside-toplevel
+
+    mesh = device_mesh() if mesh is None else mesh
+    n = mesh.devices.size
+    if keys.shape[0] % n:
+        raise ValueError(f'{keys.shape[0]} seeds cannot be split evenly over {n} devices')
+    return put_global(np.asarray(keys), NamedSharding(mesh, PartitionSpec('env')))
+
+
+def run_one_program(cfg: RunConfig, data: dict, seeds: int, log=print) -> dict:
+    """``aqm-mjx run --one-program --seeds N``: the whole run for N seeds as one jitted, vmapped call
+    (keys ``PRNGKey(seed + i)`` with ``seed = cfg.train.seed``, the same as ``run_stepwise`` with
+    that seed)."""
+    env = envs.make(cfg.train.env)
+    ds = ds_io.to_device(data)
+    seed = cfg.train.seed
+    total = seeds * cfg.train.steps
+
+    def progress(step):  # called from the device with [seeds] steps (or a scalar for one seed)
+        log(f'  train step {int(np.max(np.asarray(step)))} / {cfg.train.steps} ({seeds} seeds, {total} updates)')
+
+    run = make_run(cfg, env, progress=progress)
+    keys = jnp.stack([jax.random.PRNGKey(seed + i) for i in range(seeds)])
+    if seeds % jax.device_count() == 0:
+        keys = shard_seeds(keys)  # one device's share of the seeds on each device
+    program = jax.jit(jax.vmap(run, in_axes=(0, None)))
+    t0 = time.perf_counter()
+    compiled = program.lower(keys, ds).compile()
+    t_compile = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = jax.device_get(compiled(keys, ds))
+    t_run = time.perf_counter() - t0
+    per_seed = [summary(run, jax.tree.map(lambda x: x[i], out)) for i in range(seeds)]
+    first = list(run.episodes.variants)[0]
+    for i, s in enumerate(per_seed):
+        log(f'seed {seed + i}: AQM mean success {100 * s["aqm"][first]["mean"]:.0f}%, '
+            f'{int(out["keypoints"][i])} keypoints')
+    log(f'one program, {seeds} seeds: compile {t_compile:.1f} s, run {t_run:.1f} s')
+    return dict(env=env.name, seeds=[seed + i for i in range(seeds)], config=cfg.to_dict(), success=per_seed,
+                keypoints=[int(k) for k in out['keypoints']], compile_s=round(t_compile, 2), run_s=round(t_run, 2))
+
+
+def demo_run(out: str, steps: int = 200, seed: int = 0) -> tuple[str, str]:
+    """A tiny trained point-maze model for notebooks and smoke tests (seconds on a CPU).
+
+    Writes ``OUT/pointmaze-medium-navigate.npz`` (:func:`aqm_mjx.data.synthetic.point_walks`, 200
+    walks of 100 states) and trains the ``ci`` preset for ``steps`` updates into ``OUT/train``. The
+    walks ignore walls, so the model shows the wiring, not a skill. Returns (run folder, dataset path).
+    """
+    from aqm_mjx.data import synthetic  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
+
+    os.makedirs(out, exist_ok=True)
+    data = synthetic.point_walks(n_traj=200, t_len=100, seed=seed)
+    path = os.path.join(out, 'pointmaze-medium-navigate.npz')
+    np.savez(path, **data)
+    run = os.path.join(out, 'train')
+    cfg = methods.get('aqm').preset('ci', env='pointmaze-medium', steps=steps, seed=seed)
+    fit.train('aqm', cfg, data, run, dataset_path=path, progress=False, log=lambda *_: None)
+    return run, path

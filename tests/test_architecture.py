@@ -1,0 +1,130 @@
+"""The package's shape: stage packages whose imports point one way, no reaching into private names,
+and a method registry that evaluation never looks behind."""
+
+import ast
+import pathlib
+
+import pytest
+
+import aqm_mjx
+
+ROOT = pathlib.Path(aqm_mjx.__file__).parent
+# Stages in data-flow order: a module may import its own stage and earlier ones only.
+STAGES = ['_mjx', 'files', 'config', 'interface', 'envs', 'data', 'learn', 'mapping', 'agent', 'evaluation',
+          'pipeline', 'run', 'cli']
+
+
+def modules():
+    for path in sorted(ROOT.rglob('*.py')):
+        rel = path.relative_to(ROOT).with_suffix('')
+        parts = [p for p in rel.parts if p != '__init__']
+        yield 'aqm_mjx.' + '.'.join(parts) if parts else 'aqm_mjx', path
+
+
+def stage_of(module: str) -> str:
+    parts = module.split('.')
+    return parts[1] if len(parts) > 1 else ''
+
+
+def imports(path):
+    """``[(module imported, names taken from it)]`` of every aqm_mjx import, at any depth."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith('aqm_mjx'):
+            for alias in node.names:
+                sub = f'{node.module}.{alias.name}'
+                # `from aqm_mjx.learn import fit` imports a module; `from aqm_mjx.learn.fit import train` a name
+                out.append((sub, []) if (ROOT / sub.split('.', 1)[1].replace('.', '/')).with_suffix('.py').exists()
+                           or (ROOT / sub.split('.', 1)[1].replace('.', '/')).is_dir() else (node.module, [alias.name]))
+        elif isinstance(node, ast.Import):
+            out += [(a.name, []) for a in node.names if a.name.startswith('aqm_mjx')]
+    return out
+
+
+def test_every_module_belongs_to_a_stage():
+    for module, _ in modules():
+        if module != 'aqm_mjx':
+            assert stage_of(module) in STAGES, f'{module} is in no stage of {STAGES}'
+
+
+def test_no_stage_imports_a_later_one():
+    bad = []
+    for module, path in modules():
+        if module == 'aqm_mjx':
+            continue
+        mine = STAGES.index(stage_of(module))
+        for imported, _ in imports(path):
+            if imported == 'aqm_mjx':
+                continue
+            theirs = STAGES.index(stage_of(imported))
+            if theirs > mine:
+                bad.append(f'{module} ({STAGES[mine]}) imports {imported} ({STAGES[theirs]})')
+    assert not bad, '\n'.join(bad)
+
+
+def test_evaluation_imports_nothing_from_training():
+    for module, path in modules():
+        if stage_of(module) in ('mapping', 'agent', 'evaluation'):
+            learned = [m for m, _ in imports(path) if stage_of(m) == 'learn']
+            assert not learned, f'{module} imports {learned}'
+
+
+def test_no_module_reaches_into_another_modules_private_names():
+    bad = []
+    for module, path in modules():
+        for imported, names in imports(path):
+            bad += [f'{module}: from {imported} import {n}' for n in names if n.startswith('_')]
+        tree = ast.parse(path.read_text())
+        aliases = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module
+                   and n.module.startswith('aqm_mjx') for a in n.names}
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and node.attr.startswith('_') and not node.attr.startswith('__')
+                    and isinstance(node.value, ast.Name) and node.value.id in aliases):
+                bad.append(f'{module}: {node.value.id}.{node.attr}')
+    assert not bad, '\n'.join(bad)
+
+
+def test_the_import_checker_sees_a_backward_import(tmp_path):
+    # the checker itself: a learn module importing evaluation is reported
+    fake = tmp_path / 'x.py'
+    fake.write_text('from aqm_mjx.evaluation import protocol\nfrom aqm_mjx.learn.fit import _meta\n')
+    got = imports(fake)
+    assert ('aqm_mjx.evaluation.protocol', []) in got and ('aqm_mjx.learn.fit', ['_meta']) in got
+    assert STAGES.index(stage_of('aqm_mjx.evaluation.protocol')) > STAGES.index('learn')
+
+
+def test_cli_module_only_parses_arguments():
+    # every import in cli.py is inside a command function: the library never calls the CLI
+    for module, path in modules():
+        if module != 'aqm_mjx.cli':
+            assert all(m != 'aqm_mjx.cli' for m, _ in imports(path)), module
+
+
+@pytest.mark.parametrize('name', ['aqm', 'aqm-awr', 'aqm-bc'])
+def test_registered_methods_build_agents(name):
+    import jax
+    import numpy as np
+
+    from aqm_mjx.interface import Agent
+    from aqm_mjx.learn import methods
+
+    m = methods.get(name)
+    cfg = m.preset('ci', env='pointmaze-medium')
+    learner = m.make(cfg, 2, 2)
+    state = learner.init(jax.random.PRNGKey(0))
+    agent = learner.agent(learner.params(state))
+    assert isinstance(agent, Agent)
+    z = agent.encode(agent.aux, np.zeros(2, np.float32))
+    assert float(agent.dist(agent.aux, z, z)) == 0.0
+    assert agent.controller(agent.aux, np.zeros(2), np.ones(2), 0, jax.random.PRNGKey(1)).shape == (2,)
+    assert cfg.objective == {'aqm': 'saw', 'aqm-awr': 'awr', 'aqm-bc': 'bc'}[name]
+    with pytest.raises(ValueError, match="unknown method 'ppo'"):
+        methods.get('ppo')
+
+
+def test_readme_names_every_module():
+    """README's layout section has a line for every module, as ``stage/module.py``."""
+    readme = (ROOT.parent / 'README.md').read_text()
+    missing = [str(p.relative_to(ROOT)) for _, p in modules()
+               if p.name not in ('__init__.py', '_mjx.py') and f'`{p.relative_to(ROOT)}`' not in readme]
+    assert not missing, f'README.md does not name {missing}'
