@@ -32,16 +32,21 @@ import time
 
 import jax
 
-from aqm_mjx import dataset as ds_io
-from aqm_mjx import envs, evaluate, pipeline, train
-from aqm_mjx import graph as graphs
+from aqm_mjx import envs, run
+from aqm_mjx.agent.rules import AgentConfig
+from aqm_mjx.evaluation import evaluate
+from aqm_mjx.evaluation.protocol import ProtocolConfig
+from aqm_mjx.learn import fit, methods
+from aqm_mjx.mapping import build
+from aqm_mjx.mapping import graph as graphs
 
 from _report import finish
 
 OBJECTIVES = ('saw', 'awr', 'bc')
+METHOD = {'saw': 'aqm', 'awr': 'aqm-awr', 'bc': 'aqm-bc'}  # registry entries of the objectives
 
 
-def make_maps(agent, obs, cfg: evaluate.EvalConfig, key, selectors=('iwe', 'fps', 'random')) -> dict:
+def make_maps(agent, obs, cfg: build.MapConfig, key, selectors=('iwe', 'fps', 'random')) -> dict:
     """{selector: (graph, count, overflow)}, each padded to cfg.max_keypoints; 'random' takes as many
     keypoints as 'iwe' chose (IWE runs first)."""
     out = {}
@@ -49,7 +54,7 @@ def make_maps(agent, obs, cfg: evaluate.EvalConfig, key, selectors=('iwe', 'fps'
         scfg = dataclasses.replace(cfg, selector=sel)
         if sel == 'random':
             scfg = dataclasses.replace(scfg, max_keypoints=max(8, out['iwe'][1]))
-        g, info = evaluate.map_for_evaluation(agent, obs, scfg, key)
+        g, info = build.trimmed_map(agent, obs, scfg, key)
         out[sel] = (graphs.pad(g, cfg.max_keypoints), info['keypoints'], info['overflow'] and sel != 'random')
     return out
 
@@ -64,33 +69,32 @@ def run_case(case: str, a, out: str, rows: list) -> None:
     given = next((os.path.join(a.data_dir, n) for n in names if a.data_dir and os.path.exists(os.path.join(a.data_dir, n))),
                  None)
     episodes = a.episodes * (5 if style == 'stitch' else 1)
-    path = pipeline.data_stage(env_name, out, given, episodes, a.collect_batch, style=style)
+    path = run.data_stage(env_name, out, given, episodes, a.collect_batch, style=style)
     t_data = time.perf_counter() - t0
-    data = ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
+    data = run.read_data(path, env)
     print(f'{case}: {len(data["observations"]):,} transitions from {path} ({t_data:.0f} s)', flush=True)
     models, t_train = {}, {}
     for obj in a.objectives:
         tdir = os.path.join(out, case, obj)
-        cfg = train.TrainConfig.preset('cpu', env=env_name, objective=obj, seed=a.seed)
+        cfg = methods.get(METHOD[obj]).preset('cpu', env=env_name, seed=a.seed)
         t0 = time.perf_counter()
-        done = os.path.exists(os.path.join(tdir, 'config.json'))
-        if not done or train.load(tdir, log=lambda *_: None).step < cfg.steps:
-            train.train(cfg, data, tdir, resume=done, dataset_path=path)
+        # train, resume or skip: the one function that decides
+        models[obj] = fit.train(METHOD[obj], cfg, data, tdir, resume='auto', dataset_path=path)
         t_train[obj] = time.perf_counter() - t0
-        models[obj] = train.load(tdir, log=lambda *_: None)
-    ecfg = evaluate.EvalConfig(episodes=a.episodes_per_task, envs=a.envs, delta=a.delta,
-                               max_keypoints=a.max_keypoints, ablations=(), seed=a.seed)
+    mcfg = build.MapConfig(delta=a.delta, max_keypoints=a.max_keypoints)
+    agent_cfg = AgentConfig()
+    proto = ProtocolConfig(episodes=a.episodes_per_task, envs=a.envs, ablations=())
     key = jax.random.PRNGKey(a.seed)
     base = {'base': env.layout}
     program = None
     results = {}
 
-    def run(name, model, graph, agents_cfg):
+    def run_one(name, model, graph, protocol):
         nonlocal program
-        agent = evaluate.learned_agent(model)
+        agent = model.agent
         if program is None:
-            program = evaluate.make_program(env, agent, agents_cfg, agents_cfg.steps or env.max_episode_steps)
-        res = evaluate.evaluate(env, agent, graph, agents_cfg, base, program=program, progress=False)
+            program = evaluate.make_program(env, agent, agent_cfg, protocol.horizon or env.max_episode_steps)
+        res = evaluate.evaluate(env, agent, graph, agent_cfg, protocol, base, key=key, program=program, progress=False)
         for who in res.agents:
             label = name if who == 'aqm' else f'{name} [{who}]'
             results[label] = res.summary[who]['base']
@@ -99,18 +103,19 @@ def run_case(case: str, a, out: str, rows: list) -> None:
     t0 = time.perf_counter()
     counts = {}
     if 'saw' in models:
-        maps = make_maps(evaluate.learned_agent(models['saw']), data['observations'], ecfg, key)
+        maps = make_maps(models['saw'].agent, data['observations'], mcfg, key)
         counts = {k: v[1] for k, v in maps.items()}
         overflow = [k for k, v in maps.items() if v[2]]
         if overflow:
             print(f'  warning: {overflow} filled all {a.max_keypoints} slots; raise --max-keypoints or --delta')
-        run('AQM (IWE, Q-SAW)', models['saw'], maps['iwe'][0], dataclasses.replace(ecfg, ablations=('no-pruning', 'flat')))
-        run('AQM, FPS keypoints', models['saw'], maps['fps'][0], ecfg)
-        run('AQM, random keypoints', models['saw'], maps['random'][0], ecfg)
+        run_one('AQM (IWE, Q-SAW)', models['saw'], maps['iwe'][0],
+                dataclasses.replace(proto, ablations=('no-pruning', 'flat')))
+        run_one('AQM, FPS keypoints', models['saw'], maps['fps'][0], proto)
+        run_one('AQM, random keypoints', models['saw'], maps['random'][0], proto)
     for obj, label in (('awr', 'Q-AWR low policy'), ('bc', 'BC low policy')):
         if obj in models:
-            g = make_maps(evaluate.learned_agent(models[obj]), data['observations'], ecfg, key, ('iwe',))['iwe'][0]
-            run(f'AQM, {label}', models[obj], g, dataclasses.replace(ecfg, ablations=('flat',)))
+            g = make_maps(models[obj].agent, data['observations'], mcfg, key, ('iwe',))['iwe'][0]
+            run_one(f'AQM, {label}', models[obj], g, dataclasses.replace(proto, ablations=('flat',)))
     t_eval = time.perf_counter() - t0
     rows.append(dict(case=case, transitions=int(len(data['observations'])), keypoints=counts,
                      episodes_per_task=a.episodes_per_task, results=results,
@@ -145,7 +150,7 @@ def main(argv=None):
     p.add_argument('--episodes-per-task', type=int, default=4)
     p.add_argument('--envs', type=int, default=20,
                    help='environments per call; 20 (one task x 4 episodes x 5 tasks) keeps one compiled shape')
-    p.add_argument('--delta', type=float, default=evaluate.EvalConfig.delta)
+    p.add_argument('--delta', type=float, default=build.MapConfig.delta)
     p.add_argument('--max-keypoints', type=int, default=160)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--out', default='benchmarks/results/ablations_cpu')

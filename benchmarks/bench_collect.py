@@ -9,7 +9,7 @@ compiles and runs; the second call, on new keys, is timed alone (``block_until_r
 Row 'ogbench loop': OGBench's gymnasium ``antmaze-medium-v0`` stepped one environment at a time
 with ``terminate_at_goal=False``, the BFS oracle queried every step as its collection script does,
 and random actions instead of the SAC expert's network (so its rate is an upper bound on OGBench's).
-Row 'navigate 100K': :func:`aqm_mjx.collect.collect` end to end for ``--dataset-episodes`` episodes of
+Row 'navigate 100K': :func:`aqm_mjx.data.collect.collect` end to end for ``--dataset-episodes`` episodes of
 1001 states plus the tenth for validation, compile included.
 """
 
@@ -21,7 +21,8 @@ import time
 import jax
 import numpy as np
 
-from aqm_mjx import collect, envs
+from aqm_mjx import envs
+from aqm_mjx.data import collect
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 

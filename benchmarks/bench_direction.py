@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs, train
+from aqm_mjx import envs
+from aqm_mjx.learn import fit
 
 from _report import finish
 
@@ -31,10 +32,11 @@ def direction_test(trained, which: str, n: int = 16, steps: int = 100, radius: f
     unit = jnp.stack([jnp.cos(ang), jnp.sin(ang)], -1)
     goal = start + radius * unit
     s0 = jax.vmap(env.reset_to)(jax.random.split(jax.random.PRNGKey(seed), n), start, goal)
-    params = {'main': trained.state.pi_params[which]}
+    agent = trained.agent
+    aux = {**agent.aux, 'pi': {'main': agent.aux['pi'][which]}}  # the chosen policy as the controller
 
     def body(s, _):
-        a = jnp.clip(jax.vmap(lambda o, g: trained.learner.act(params, o, g))(s.obs, s.goal), -1, 1)
+        a = jnp.clip(jax.vmap(lambda o, g: agent.controller(aux, o, g, 0, None))(s.obs, s.goal), -1, 1)
         return jax.vmap(env.step)(s, a), None
 
     s, _ = jax.jit(lambda s: jax.lax.scan(body, s, None, length=steps))(s0)
@@ -54,7 +56,7 @@ def main(argv=None):
     p.add_argument('--steps', type=int, default=100)
     p.add_argument('--out', default=None, help='JSON file for the rows')
     a = p.parse_args(argv)
-    trained = train.load(a.checkpoint, log=lambda *_: None)
+    trained = fit.load(a.checkpoint, log=lambda *_: None)
     rows = []
     for which in a.policy:
         r = direction_test(trained, which, steps=a.steps)

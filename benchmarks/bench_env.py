@@ -49,10 +49,10 @@ def bench_mjx(env, batch, iters, alone=False):
             d = d.replace(ctrl=jnp.clip(a, -1, 1))
             return jax.lax.scan(lambda d, _: (mjx.step(mx, d), None), d, None, length=5)[0]
 
-        data0 = locomaze._strip_weak_types(mjx.make_data(mx))
+        data0 = locomaze.strip_weak_types(mjx.make_data(mx))
     else:
         control = env.physics_step
-        data0 = env._template
+        data0 = env.template
     step = jax.jit(jax.vmap(control))
     key = jax.random.PRNGKey(0)
     grid = jnp.broadcast_to(jnp.asarray(env.layout), (batch,) + env.layout.shape)

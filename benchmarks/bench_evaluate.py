@@ -9,7 +9,7 @@ runs, the second, with new keys, is timed alone):
 - 'physics B': ``lax.scan`` over ``vmap(env.step)`` in antmaze-medium from the same resets,
   replaying the agent's recorded actions: the same states and contacts, nothing else (the final
   x-y are checked against the agent's).
-- 'agent B': :func:`aqm_mjx.evaluate.make_program`, the whole evaluation program: per step, encode
+- 'agent B': :func:`aqm_mjx.evaluation.evaluate.make_program`, the whole evaluation program: per step, encode
   the state (IQE encoder), switch / time / prune on the keypoint graph, replan the environments that
   pruned (Floyd-Warshall), the main policy's action, the physics. Its networks have the ``cpu``
   preset's shapes (3x256 MLPs, 256 IQE components; random weights unless ``--checkpoint``) and
@@ -32,8 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs, evaluate, rollout, train
-from aqm_mjx import graph as graphs
+from aqm_mjx import envs
+from aqm_mjx.agent import oracle, rollout
+from aqm_mjx.agent.rules import AgentConfig
+from aqm_mjx.learn import fit, methods
+from aqm_mjx.mapping import graph as graphs
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
@@ -63,37 +66,38 @@ def physics_replay_rate(env, batch, steps, keys, task_ids, actions):
 
 def make_agent(env, checkpoint, n_keypoints, seed=0):
     if checkpoint:
-        trained = train.load(checkpoint)
+        trained = fit.load(checkpoint)
     else:
-        cfg = train.TrainConfig.preset('cpu', env=env.name)
-        learner = train.make_learner(cfg, env.obs_size, env.action_size)
-        trained = train.Trained(cfg, learner, learner.init(jax.random.PRNGKey(seed)), 0, {})
-    agent = evaluate.learned_agent(trained)
+        cfg = methods.get('aqm').preset('cpu', env=env.name)
+        learner = methods.get('aqm').make(cfg, env.obs_size, env.action_size)
+        trained = fit.Trained('aqm', cfg, learner, learner.init(jax.random.PRNGKey(seed)), 0, {})
+    agent = trained.agent
     # keypoint observations: IWE keypoints of the exact maze distance (positions over the free space)
-    _, g = rollout.maze_graph(env.layout, delta=3.0, obs_size=env.obs_size, max_keypoints=512)
+    _, g = oracle.maze_graph(env.layout, delta=3.0, obs_size=env.obs_size, max_keypoints=512)
     obs = np.array(g.obs[:n_keypoints])
     obs[:, 2] = 0.75  # torso height of a standing ant; the rest of the pose zero
     obs = jnp.asarray(obs)
     z = jax.vmap(lambda o: agent.encode(agent.aux, o))(obs)
     d = lambda x, y: agent.dist(agent.aux, x, y)  # noqa: E731
     w = graphs.build_graph(d, z, jnp.ones(len(obs), bool), 0.0, tau=jnp.inf)  # fully connected
-    return agent, graphs.Graph(z=z, obs=obs, mask=jnp.ones(len(obs), bool), w=w), trained
+    # attachment radius 1e9: starts and goals attach to every keypoint
+    return agent, graphs.Graph(z=z, obs=obs, mask=jnp.ones(len(obs), bool), w=w, tau=jnp.float32(1e9)), trained
 
 
 def agent_rate(env, agent, graph, batch, steps, kappa, switch_radius):
-    cfg = evaluate.EvalConfig(kappa=kappa, switch_radius=switch_radius, tau=1e9)
-    run = rollout.make_evaluate(env, agent.encode, agent.dist, agent.controller, cfg.agent_config(), steps,
-                                record_actions=True)
-    program = jax.jit(run)
+    cfg = AgentConfig(kappa=kappa, switch_radius=switch_radius)
+    program = jax.jit(rollout.make_rollout(env, agent, cfg, steps, record_actions=True))
     ids = np.arange(batch, dtype=np.int32) % 5 + 1
-    inputs = [rollout.episode_inputs(jax.random.PRNGKey(i), ids, env.layout, kappa, True) for i in range(2)]
-    first, second, out = timed_twice(lambda *a: program(agent.aux, graph, *a), lambda i: inputs[i])
+    inputs = [rollout.episode_inputs(rollout.episode_keys(jax.random.PRNGKey(i), np.arange(batch)), ids, env.layout,
+                                     kappa, True) for i in range(2)]
+    first, second, out = timed_twice(lambda x: program(agent.aux, graph, x), lambda i: (inputs[i],))
     node = np.asarray(out['node'])
     pruned = np.asarray(out['pruned'])
     return dict(row=f'agent {batch}', batch=batch, switch_radius=round(switch_radius, 4), steps=steps, keypoints=int(graph.mask.shape[0]),
                 compile_s=round(first - second, 1), run_s=round(second, 2),
                 control_steps_per_s=round(batch * steps / second, 1), prunes=int(pruned.sum()),
-                node_changes=int((node[1:] != node[:-1]).sum())), (inputs[1][0], inputs[1][1], out['actions'], out['xy'][-1])
+                node_changes=int((node[1:] != node[:-1]).sum())), (inputs[1].keys, inputs[1].task_ids, out['actions'],
+                                                             out['xy'][-1])
 
 
 def ogbench_loop_rate(trained, n_steps, seed=0):
@@ -101,8 +105,9 @@ def ogbench_loop_rate(trained, n_steps, seed=0):
     import ogbench.locomaze  # noqa: F401  pylint: disable=import-outside-toplevel,unused-import
 
     env = gymnasium.make('antmaze-medium-v0', max_episode_steps=1000)
-    act = jax.jit(trained.learner.act)
-    params = trained.state.pi_params
+    agent = trained.agent
+    act = jax.jit(lambda aux, o, g: agent.controller(aux, o, g, 0, None))
+    params = agent.aux
     obs, info = env.reset(seed=seed, options=dict(task_id=1))
     goal = info['goal']
     np.asarray(act(params, obs, goal))  # compile

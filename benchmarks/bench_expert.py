@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs, expert
+from aqm_mjx import envs
+from aqm_mjx.data import expert
 from aqm_mjx._mjx import mjx
 
 

@@ -25,7 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.sparse.csgraph import floyd_warshall as scipy_fw
 
-from aqm_mjx import keypoints, plan
+from aqm_mjx.agent import plan
+from aqm_mjx.mapping import keypoints
 
 
 def graphs(rng, b, k):

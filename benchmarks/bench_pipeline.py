@@ -5,7 +5,7 @@
 
 A small run (``tiny`` training preset, ``--updates`` updates; IWE on the dataset; 2 agents x 2 tasks x
 ``--episodes`` episodes of ``--steps`` control steps) on random point walks in pointmaze-medium
-(``aqm_mjx.synthetic.point_walks``) or, for an ant maze, on ``--dataset``. 'vmapped': ``jax.jit(
+(``aqm_mjx.data.synthetic.point_walks``) or, for an ant maze, on ``--dataset``. 'vmapped': ``jax.jit(
 jax.vmap(run))`` over N keys, one call. 'sequential': ``jax.jit(run)`` compiled once, called N times.
 Compile time is printed apart (``lower().compile()``); run times exclude it.
 """
@@ -17,8 +17,9 @@ import time
 
 import jax
 
-from aqm_mjx import dataset as ds_io
-from aqm_mjx import envs, evaluate, pipeline, synthetic, train
+from aqm_mjx import envs, pipeline
+from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.data import synthetic
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
@@ -45,11 +46,10 @@ def main():
     else:
         data = synthetic.point_walks(n_traj=200, t_len=100)
     ds = ds_io.to_device(data)
-    cfg = pipeline.RunConfig(
-        train=train.TrainConfig.preset('tiny', env=a.env, steps=a.updates, updates_per_call=50, log_every=50,
-                                       checkpoint_every=50),
-        eval=evaluate.EvalConfig(episodes=a.episodes, tasks=(1, 2), steps=a.steps, delta=0.5, max_keypoints=64,
-                                 candidates=2000, ablations=('flat',)))
+    cfg = pipeline.RunConfig.preset('ci', env=a.env).with_overrides([
+        f'train.steps={a.updates}', 'train.updates_per_call=50', 'train.log_every=50', 'train.checkpoint_every=50',
+        f'protocol.episodes={a.episodes}', 'protocol.tasks=1,2', f'protocol.horizon={a.steps}', 'protocol.ablations=flat',
+        'map.max_keypoints=64', 'map.candidates=2000', 'agent.kappa=1', 'agent.switch_radius=10'])
     run = pipeline.make_run(cfg, env)
     rows = []
     one = jax.jit(run).lower(jax.random.PRNGKey(0), ds)
@@ -64,7 +64,7 @@ def main():
         many_compile = time.perf_counter() - t0
         t_many = timed(many, keys, ds)
         t_seq = sum(timed(one, keys[i], ds) for i in range(n))
-        r = dict(seeds=n, envs_per_seed=len(run.table.task), updates=a.updates, vmapped_compile_s=round(many_compile, 1),
+        r = dict(seeds=n, envs_per_seed=len(run.episodes.table.task), updates=a.updates, vmapped_compile_s=round(many_compile, 1),
                  single_compile_s=round(one_compile, 1), vmapped_run_s=round(t_many, 2), sequential_run_s=round(t_seq, 2),
                  speedup=round(t_seq / t_many, 2))
         print(r, flush=True)

@@ -3,13 +3,13 @@
     python benchmarks/bench_shifts.py                        # CPU: antmaze-medium, 2 episodes, ~10 minutes
     python benchmarks/bench_shifts.py --episodes 50 --envs 4096   # on a GPU: the full protocol
 
-The quasimetric is the exact maze distance of the *training* layout (``rollout.maze_graph``, IWE at
+The quasimetric is the exact maze distance of the *training* layout (``oracle.maze_graph``, IWE at
 ``--delta`` m, a time-to-reach at 0.12 m per control step); the controller is the scripted trot
 steered by the training layout's BFS toward the current target. So on a shifted layout the agent's
 map and controller are both out of date, as a learned agent's would be. Rows: AQM (kappa 0.25), no
 pruning (kappa = inf) and the flat agent (always aimed at the goal); columns: the layouts of
 :func:`aqm_mjx.envs.shifts.suite`. Every agent x layout x task x episode runs as one episode table
-(:func:`aqm_mjx.evaluate.evaluate`). Writes a heatmap PNG and the JSON summary.
+(:func:`aqm_mjx.evaluation.evaluate.evaluate`). Writes a heatmap PNG and the JSON summary.
 """
 
 from __future__ import annotations
@@ -20,9 +20,13 @@ import os
 
 import numpy as np
 
-from aqm_mjx import envs, evaluate, plots
-from aqm_mjx import graph as graphs
+from aqm_mjx import envs
+from aqm_mjx.agent import oracle
+from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.envs import shifts
+from aqm_mjx.evaluation import evaluate, plots, report
+from aqm_mjx.evaluation.protocol import ProtocolConfig
+from aqm_mjx.mapping import graph as graphs
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
@@ -39,11 +43,11 @@ def main():
     a = p.parse_args()
     env = envs.make(a.env)
     base = env.layout
-    agent, graph, match = evaluate.oracle_agent(env, base, delta=a.delta, speed=SPEED)
-    cfg = evaluate.EvalConfig(episodes=a.episodes, envs=a.envs, ablations=('no-pruning', 'flat'), **match)
+    agent, graph, match = oracle.oracle_agent(env, base, delta=a.delta, speed=SPEED)
+    protocol = ProtocolConfig(episodes=a.episodes, envs=a.envs, ablations=('no-pruning', 'flat'))
     variants = shifts.suite(env.maze)
-    res = evaluate.evaluate(env, agent, graph, cfg, variants)
-    evaluate.print_summary(res)
+    res = evaluate.evaluate(env, agent, graph, AgentConfig(**match), protocol, variants)
+    report.print_summary(res)
     os.makedirs(a.out, exist_ok=True)
     vals = np.array([[res.summary[ag][v]['mean'] for v in res.variants] for ag in res.agents])
     plots.heatmap(res.agents, res.variants, vals, os.path.join(a.out, 'heatmap.png'), ylabel='agent',

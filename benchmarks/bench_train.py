@@ -18,8 +18,8 @@ import time
 import jax
 import numpy as np
 
-from aqm_mjx import dataset as dsm
-from aqm_mjx import train
+from aqm_mjx.data import dataset as dsm
+from aqm_mjx.learn import aqm, fit
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
@@ -28,26 +28,27 @@ def rate(preset, calls, upc, objective='saw'):
     over = dict(objective=objective)
     if upc:
         over.update(updates_per_call=upc, log_every=upc, checkpoint_every=upc, steps=upc)
-    cfg = train.TrainConfig.preset(preset, env='antmaze-medium', **over)
+    cfg = aqm.AQMConfig.preset(preset, env='antmaze-medium', **over)
     rng = np.random.default_rng(0)
     n = 100_000
     term = np.zeros(n, bool)
     term[999::1000] = True
     data = dict(observations=rng.normal(size=(n, 29)).astype(np.float32),
                 actions=rng.uniform(-1, 1, (n, 8)).astype(np.float32), terminals=term)
-    learner = train.make_learner(cfg, 29, 8)
+    learner = aqm.make(cfg, 29, 8)
     ds = dsm.to_device(data)
     state = learner.init(jax.random.PRNGKey(0))
+    chunk = jax.jit(fit.chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
     t0 = time.perf_counter()
-    state, m = jax.block_until_ready(learner.chunk(state, ds))
+    state, m = jax.block_until_ready(chunk(state, ds))
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
     for _ in range(calls):
-        state, m = learner.chunk(state, ds)
+        state, m = chunk(state, ds)
     jax.block_until_ready(state)
     dt = (time.perf_counter() - t0) / calls
     per_s = cfg.updates_per_call / dt
-    full = train.TrainConfig.preset(preset).steps
+    full = aqm.AQMConfig.preset(preset).steps
     return dict(preset=preset, objective=objective, batch=cfg.batch_size, q_hidden=list(cfg.q_hidden),
                 latent=f'{cfg.n_components}x{cfg.component_size}', pi_hidden=list(cfg.pi_hidden),
                 updates_per_call=cfg.updates_per_call, compile_s=round(first - dt, 1), updates_per_s=round(per_s, 1),
