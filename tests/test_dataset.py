@@ -6,6 +6,7 @@ import pytest
 from ogbench.utils import load_dataset
 
 from aqm_mjx.data import dataset as dsm
+from aqm_mjx.data import goals
 
 
 def fake_raw(n_traj=6, length=40, obs=29, act=8, seed=0, with_info=True):
@@ -89,9 +90,9 @@ def test_goal_sampler_mixture_offsets_and_boundaries():
     raw = fake_raw(n_traj=50, length=400, with_info=False)
     raw['observations'][:, 0] = np.arange(len(raw['terminals']))  # observation 0 = its own index
     ds = dsm.to_device(raw)
-    cfg = dsm.GoalSampling(p_current=0.2, p_trajectory=0.5, p_random=0.3, geometric=True, discount=0.9, subgoal_offset=25)
+    cfg = goals.GoalSampling(p_current=0.2, p_trajectory=0.5, p_random=0.3, geometric=True, discount=0.9, subgoal_offset=25)
     n = 200_000
-    b = jax.jit(lambda k: dsm.sample(ds, k, n, cfg))(jax.random.PRNGKey(0))
+    b = jax.jit(lambda k: goals.sample(ds, k, n, cfg))(jax.random.PRNGKey(0))
     idx, goal, sub, kind = (np.asarray(x) for x in (b.index, b.goal_index, b.subgoal_index, b.goal_kind))
     traj = idx // 400
     # Mixture frequencies within 4 standard deviations.
@@ -115,7 +116,7 @@ def test_goal_sampler_mixture_offsets_and_boundaries():
     r = goal[kind == 2]
     assert r.min() < 400 and r.max() > 19_500 and (r // 400 != traj[kind == 2]).mean() > 0.9
     # Uniform trajectory goals: uniform over t + 1 .. end.
-    u = dsm.sample(ds, jax.random.PRNGKey(1), n, dsm.GoalSampling(geometric=False))
+    u = goals.sample(ds, jax.random.PRNGKey(1), n, goals.GoalSampling(geometric=False))
     ui, ug = np.asarray(u.index), np.asarray(u.goal_index)
     assert np.all(ug > ui) and np.all(ug // 400 == ui // 400)
     frac = (ug - ui) / (399 - ui % 400)
@@ -124,9 +125,9 @@ def test_goal_sampler_mixture_offsets_and_boundaries():
 
 def test_bad_sampling_config():
     with pytest.raises(ValueError, match='sum to 1'):
-        dsm.GoalSampling(p_current=0.5, p_trajectory=0.6)
+        goals.GoalSampling(p_current=0.5, p_trajectory=0.6)
     with pytest.raises(ValueError, match='discount'):
-        dsm.GoalSampling(discount=1.0)
+        goals.GoalSampling(discount=1.0)
 
 
 def test_a_dataset_without_transitions_is_refused():

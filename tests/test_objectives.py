@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from aqm_mjx.data import dataset as dsm
+from aqm_mjx.data import goals
 from aqm_mjx.data import synthetic
 from aqm_mjx.learn import aqm, objectives
 from aqm_mjx.learn.policy import kl, log_prob
@@ -116,7 +117,7 @@ def test_update_feeds_the_objectives_the_distances_of_its_batch(objective):
     _, metrics = jax.jit(learner.update)(state, ds)
     # the update's own batch: the same key split as the update
     _, k_batch, _ = jax.random.split(state.key, 3)
-    b = dsm.sample(ds, k_batch, cfg.batch_size, cfg.goal_sampling)
+    b = goals.sample(ds, k_batch, cfg.batch_size, cfg.goal_sampling)
     iqe = learner.modules['quasimetric']
     dist = lambda x, y: iqe.apply(state.q_params, x, y)  # noqa: E731
     w = lambda adv: np.minimum(np.exp(cfg.temperature * np.asarray(adv)), cfg.weight_clip)  # noqa: E731

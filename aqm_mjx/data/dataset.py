@@ -1,4 +1,5 @@
-"""Datasets: OGBench ``.npz`` files in and out, a device-resident dataset and its goal sampler.
+"""Datasets: OGBench ``.npz`` files in and out and a device-resident dataset (goal-conditioned
+batches are drawn from it by :mod:`aqm_mjx.data.goals`).
 
 File format (OGBench's, written with ``np.savez_compressed``): ``observations [N, D]`` float32,
 ``actions [N, A]`` float32, ``terminals [N]`` bool (True at the last state of each trajectory),
@@ -13,14 +14,12 @@ of ``t``'s trajectory, which is what keeps every sampled goal inside its traject
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import tempfile
 import zipfile
 from typing import Optional
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
@@ -185,62 +184,6 @@ def to_device(data: dict, device=None) -> Dataset:
     return Dataset(observations=put(np.asarray(data['observations'], np.float32)),
                    actions=put(np.asarray(data['actions'], np.float32)), traj_end=put(traj_end),
                    valid_index=put(sources))
-
-
-@dataclasses.dataclass(frozen=True)
-class GoalSampling:
-    """How goals and subgoals are drawn (OGBench's GCDataset semantics)."""
-
-    p_current: float = 0.0  # goal = the state itself
-    p_trajectory: float = 1.0  # goal = a later state of the same trajectory
-    p_random: float = 0.0  # goal = a uniformly random dataset state
-    geometric: bool = True  # trajectory goals: offset ~ Geometric(1 - discount) (else uniform over the rest)
-    discount: float = 0.99  # of the geometric offsets
-    subgoal_offset: int = 25  # subgoal = state t + k, clamped at the trajectory's end
-
-    def __post_init__(self):
-        ps = (self.p_current, self.p_trajectory, self.p_random)
-        if min(ps) < 0 or abs(sum(ps) - 1.0) > 1e-6:
-            raise ValueError(f'goal probabilities must be >= 0 and sum to 1; got {ps}')
-        if not 0.0 < self.discount < 1.0:
-            raise ValueError(f'discount must be in (0, 1); got {self.discount}')
-        if self.subgoal_offset < 1:
-            raise ValueError(f'subgoal_offset must be >= 1; got {self.subgoal_offset}')
-
-
-@struct.dataclass
-class Batch:
-    """A sampled batch; every field has a leading ``[B]``. ``*_index`` are dataset indices."""
-
-    observations: jax.Array
-    actions: jax.Array
-    next_observations: jax.Array
-    goals: jax.Array
-    subgoals: jax.Array
-    index: jax.Array
-    goal_index: jax.Array
-    subgoal_index: jax.Array
-    goal_kind: jax.Array  # 0 current, 1 trajectory, 2 random
-
-
-def sample(ds: Dataset, key: jax.Array, batch_size: int, cfg: GoalSampling = GoalSampling()) -> Batch:
-    """Sample transitions with goals and subgoals; jittable (``batch_size`` and ``cfg`` static)."""
-    k_idx, k_kind, k_off, k_rand = jax.random.split(key, 4)
-    idx = ds.valid_index[jax.random.randint(k_idx, (batch_size,), 0, ds.valid_index.shape[0])]
-    end = ds.traj_end[idx]
-    if cfg.geometric:
-        off = jax.random.geometric(k_off, 1.0 - cfg.discount, (batch_size,)).astype(jnp.int32)  # >= 1
-        traj_goal = jnp.minimum(idx + off, end)
-    else:
-        u = jax.random.uniform(k_off, (batch_size,))
-        traj_goal = jnp.minimum(idx + 1 + jnp.floor(u * (end - idx)).astype(jnp.int32), end)
-    rand_goal = jax.random.randint(k_rand, (batch_size,), 0, ds.size)
-    kind = jax.random.choice(k_kind, 3, (batch_size,), p=jnp.array([cfg.p_current, cfg.p_trajectory, cfg.p_random]))
-    goal = jnp.where(kind == 0, idx, jnp.where(kind == 1, traj_goal, rand_goal))
-    sub = jnp.minimum(idx + cfg.subgoal_offset, end)
-    obs = ds.observations
-    return Batch(observations=obs[idx], actions=ds.actions[idx], next_observations=obs[idx + 1], goals=obs[goal],
-                 subgoals=obs[sub], index=idx, goal_index=goal, subgoal_index=sub, goal_kind=kind.astype(jnp.int32))
 
 
 def infer_env(path: str) -> tuple[str, Optional[str]]:

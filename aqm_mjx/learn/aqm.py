@@ -22,6 +22,7 @@ from flax import struct
 
 from aqm_mjx import config as cfg_lib
 from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.data import goals
 from aqm_mjx.envs import parse_name
 from aqm_mjx.interface import Agent
 from aqm_mjx.learn import objectives, policy
@@ -99,10 +100,10 @@ class AQMConfig(LoopConfig):
         return PUSH_OFFSETS[parse_name(self.env)[1]]
 
     @property
-    def goal_sampling(self) -> ds_io.GoalSampling:
+    def goal_sampling(self) -> goals.GoalSampling:
         if self.policy_goals == 'random':
-            return ds_io.GoalSampling(p_trajectory=0.0, p_random=1.0, subgoal_offset=self.subgoal_offset)
-        return ds_io.GoalSampling(p_trajectory=1.0, geometric=False, subgoal_offset=self.subgoal_offset)
+            return goals.GoalSampling(p_trajectory=0.0, p_random=1.0, subgoal_offset=self.subgoal_offset)
+        return goals.GoalSampling(p_trajectory=1.0, geometric=False, subgoal_offset=self.subgoal_offset)
 
 
 PRESETS = {
@@ -161,7 +162,7 @@ def make(cfg: AQMConfig, obs_size: int, action_size: int) -> Learner:
 
     def update(state: TrainState, ds: ds_io.Dataset):
         key, k_batch, k_rand = jax.random.split(state.key, 3)
-        batch = ds_io.sample(ds, k_batch, b, gs)
+        batch = goals.sample(ds, k_batch, b, gs)
         s, s1, w, g = batch.observations, batch.next_observations, batch.subgoals, batch.goals
         rand = ds.observations[jax.random.randint(k_rand, (b,), 0, ds.size)]
         lam = lam_value(state.lam)

@@ -28,6 +28,8 @@ class Learner(NamedTuple):
         params: ``state -> params``, the pytree the agent reads.
         agent: ``params -> Agent`` (``None``: the functions alone, parameters bound later).
         modules: the method's flax modules by name (for tools that inspect them).
+        loss: ``(params, target, batch, key) -> (loss, info)``, the summed loss ``update`` differentiates
+            (the baselines; tests and the parity benchmark evaluate it on a batch of their own).
     """
 
     config: Any
@@ -36,6 +38,7 @@ class Learner(NamedTuple):
     params: Callable
     agent: Callable
     modules: dict
+    loss: Optional[Callable] = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,6 +14,7 @@ import dataclasses
 from typing import Callable
 
 from aqm_mjx.learn import aqm
+from aqm_mjx.learn.baselines import crl, gcbc, gciql, gcivl, hiql, qrl, saw
 from aqm_mjx.learn.learner import Learner
 
 
@@ -69,3 +70,12 @@ register(Method('aqm-awr', aqm.AQMConfig, aqm.make, {'objective': 'awr'},
                 "AQM's quasimetric with a Q-AWR policy on the goal (ablation)"))
 register(Method('aqm-bc', aqm.AQMConfig, aqm.make, {'objective': 'bc'},
                 "AQM's quasimetric with a behaviour-cloned policy (ablation)"))
+register(Method('gcbc', gcbc.GCBCConfig, gcbc.make, summary='GCBC: goal-conditioned behaviour cloning'))
+register(Method('gcivl', gcivl.GCIVLConfig, gcivl.make, summary='GCIVL: implicit V-learning value, AWR actor'))
+register(Method('gciql', gciql.GCIQLConfig, gciql.make, summary='GCIQL: IQL Q and V, DDPG+BC actor'))
+register(Method('qrl', qrl.QRLConfig, qrl.make, summary="QRL (OGBench's): IQE quasimetric, latent dynamics, DDPG+BC"))
+register(Method('crl', crl.CRLConfig, crl.make, summary='CRL: contrastive critic (InfoNCE), DDPG+BC actor'))
+register(Method('hiql', hiql.HIQLConfig, hiql.make, summary='HIQL: IVL value with goal representation, high and '
+                'low AWR policies'))
+register(Method('saw', saw.SAWConfig, saw.make, summary='SAW: IVL value, sub-policy and a flat policy bootstrapped '
+                'from it'))

@@ -1,0 +1,258 @@
+"""The baselines: losses by hand on tiny inputs, the goal sampler's mixtures against a chi-square
+test that a wrong mixture fails, the wiring of HIQL's and SAW's targets, and resume."""
+
+import numpy as np
+import jax
+import jax.numpy as jnp
+import pytest
+from scipy import stats
+
+from aqm_mjx.data import dataset as dsm
+from aqm_mjx.data import goals, synthetic
+from aqm_mjx.learn import fit, losses, methods, networks, policy
+
+BASELINES = ('gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw')
+
+
+# ------------------------------------------------------------------------------- losses by hand
+def test_expectile_loss_by_hand():
+    adv = jnp.array([1.0, -1.0, 0.0])
+    diff = jnp.array([2.0, 3.0, -1.0])
+    np.testing.assert_allclose(losses.expectile_loss(adv, diff, 0.9), [0.9 * 4, 0.1 * 9, 0.9 * 1], rtol=1e-6)
+
+
+def test_ivl_value_loss_uses_the_target_for_the_side_and_the_online_value_for_the_difference():
+    # two heads, two transitions; the second is at its goal (reward 0, mask 0)
+    v = jnp.array([[-2.0, -0.5], [-3.0, 0.5]])
+    v_t = jnp.array([[-2.5, -1.0], [-1.5, 0.0]])
+    nv_t = jnp.array([[-1.0, -7.0], [-2.0, -9.0]])
+    r, m, gamma, tau = jnp.array([-1.0, 0.0]), jnp.array([1.0, 0.0]), 0.5, 0.9
+    loss, info = losses.ivl_value_loss(v, v_t, nv_t, r, m, gamma, tau)
+    # by hand: adv = r + gamma m min(nv_t) - mean(v_t)
+    adv = np.array([-1 + 0.5 * -2.0 - (-2.0), 0.0 - (-0.5)])  # [0.0, 0.5]: both >= 0 -> weight 0.9
+    q1 = np.array([-1 + 0.5 * -1.0, 0.0])  # head 1 targets
+    q2 = np.array([-1 + 0.5 * -2.0, 0.0])
+    want = np.mean(0.9 * (q1 - [-2.0, -0.5]) ** 2) + np.mean(0.9 * (q2 - [-3.0, 0.5]) ** 2)
+    assert adv.tolist() == [0.0, 0.5]
+    assert float(loss) == pytest.approx(want, rel=1e-6)
+    assert float(info['value/adv_mean']) == pytest.approx(0.25)
+    # a negative advantage takes the other side: make transition 1's target mean higher
+    loss2, _ = losses.ivl_value_loss(v, v_t.at[:, 0].set(0.0), nv_t, r, m, gamma, tau)
+    want2 = np.mean([0.1 * (q1[0] + 2.0) ** 2, 0.9 * (0 + 0.5) ** 2]) + np.mean([0.1 * (q2[0] + 3.0) ** 2,
+                                                                                  0.9 * (0 - 0.5) ** 2])
+    assert float(loss2) == pytest.approx(want2, rel=1e-6)
+
+
+def test_iql_value_and_critic_losses_by_hand():
+    q_t = jnp.array([[1.0, -2.0], [0.5, -1.0]])  # min over heads: [0.5, -2.0]
+    v = jnp.array([0.0, 0.0])
+    loss, _ = losses.iql_value_loss(q_t, v, 0.9)
+    assert float(loss) == pytest.approx(np.mean([0.9 * 0.25, 0.1 * 4.0]))
+    q = jnp.array([[1.0, 2.0], [0.0, 3.0]])
+    loss, _ = losses.iql_critic_loss(q, jnp.array([2.0, 4.0]), jnp.array([-1.0, 0.0]), jnp.array([1.0, 0.0]), 0.5)
+    target = np.array([-1 + 0.5 * 2.0, 0.0])  # [0, 0]
+    assert float(loss) == pytest.approx(np.mean([(1 - 0) ** 2 + (0 - 0) ** 2, (2 - 0) ** 2 + (3 - 0) ** 2]))
+    assert target.tolist() == [0.0, 0.0]
+
+
+def test_ddpgbc_normalises_q_by_its_mean_absolute_value():
+    q = jnp.array([[-2.0, -4.0], [-1.0, -6.0]])  # min: [-2, -6], mean -4, mean |q| 4
+    logp = jnp.array([-1.0, -3.0])
+    loss, info = losses.ddpgbc_actor_loss(q, logp, 0.3)
+    assert float(info['actor/q_loss']) == pytest.approx(4.0 / (4.0 + 1e-6))
+    assert float(info['actor/bc_loss']) == pytest.approx(0.3 * 2.0)
+    assert float(loss) == pytest.approx(4.0 / (4.0 + 1e-6) + 0.6)
+    # the normaliser carries no gradient: d loss / d q_i = -1 / (B |q|mean) for the minimum head
+    g = jax.grad(lambda qq: losses.ddpgbc_actor_loss(qq, logp, 0.3)[0])(q)
+    np.testing.assert_allclose(np.asarray(g), [[-1 / 8, 0.0], [0.0, -1 / 8]], rtol=1e-5)
+
+
+def test_infonce_logits_and_labels_by_hand():
+    phi = jnp.array([[[1.0, 0.0], [0.0, 2.0]]])  # one head, B = 2, L = 2
+    psi = jnp.array([[[3.0, 1.0], [1.0, 1.0]]])
+    logits = np.asarray(losses.contrastive_logits(phi, psi))[..., 0]
+    np.testing.assert_allclose(logits, np.array([[3.0, 1.0], [2.0, 2.0]]) / np.sqrt(2), rtol=1e-6)
+    loss, info = losses.infonce_loss(phi, psi)
+
+    def bce(x, y):
+        return -(y * np.log(1 / (1 + np.exp(-x))) + (1 - y) * np.log(1 - 1 / (1 + np.exp(-x))))
+
+    want = np.mean([bce(logits[i, j], float(i == j)) for i in range(2) for j in range(2)])
+    assert float(loss) == pytest.approx(want, rel=1e-5)
+    assert float(info['critic/accuracy']) == pytest.approx(0.5)  # row 0 picks column 0, row 1 ties -> column 0
+
+
+def test_awr_and_saw_waypoint_terms_by_hand():
+    logp, adv = jnp.array([-1.0, -2.0]), jnp.array([0.5, 2.0])
+    loss, _ = losses.awr_actor_loss(logp, adv, 3.0, clip=100.0)
+    assert float(loss) == pytest.approx(-(np.exp(1.5) * -1 + 100.0 * -2) / 2, rel=1e-5)
+    mu, mu_sub = jnp.array([[1.0, 0.0], [0.0, 0.0]]), jnp.array([[0.0, 0.0], [1.0, 2.0]])
+    loss, info = losses.waypoint_loss(mu, mu_sub, jnp.array([0.0, -1.0]), 3.0)
+    assert float(info['waypoint/kl']) == pytest.approx((1.0 + 5.0) / 2)
+    assert float(loss) == pytest.approx((1.0 * 1.0 + np.exp(-3.0) * 5.0) / 2, rel=1e-6)
+    # the sub-policy is a fixed target: no gradient reaches it
+    g = jax.grad(lambda m: losses.waypoint_loss(mu, m, jnp.zeros(2), 3.0)[0])(mu_sub)
+    assert not np.any(np.asarray(g))
+
+
+def test_qrl_value_loss_by_hand():
+    d_neg, d_pos, lam = jnp.array([100.0, 700.0]), jnp.array([0.5, 3.0]), jnp.float32(2.0)
+    loss, info = losses.qrl_value_loss(d_neg, d_pos, lam, 0.05)
+    sp = lambda x: np.log1p(np.exp(x))  # noqa: E731
+    d_neg_loss = np.mean([100 * sp(4.0), 100 * sp(-2.0)])
+    d_pos_loss = np.mean([0.0, 4.0])
+    assert float(info['value/d_pos_loss']) == pytest.approx(d_pos_loss)
+    assert float(loss) == pytest.approx(d_neg_loss + 2 * d_pos_loss + 2 * (0.05 - d_pos_loss), rel=1e-6)
+    # the multiplier ascends on the violation: d loss / d lam = eps - d_pos_loss
+    g = jax.grad(lambda l: losses.qrl_value_loss(d_neg, d_pos, l, 0.05)[0])(lam)
+    assert float(g) == pytest.approx(0.05 - d_pos_loss, rel=1e-6)
+
+
+def test_actor_initialisation_follows_ogbench():
+    actor = networks.Actor((64, 64), 8)
+    p = actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 29)), jnp.zeros((1, 29)))['params']
+    # variance scaling fan_avg uniform: limit sqrt(3 scale / fan_avg)
+    k0 = np.asarray(p['actor_net']['Dense_0']['kernel'])
+    assert np.abs(k0).max() <= np.sqrt(3 / ((58 + 64) / 2)) and np.abs(k0).max() > 0.9 * np.sqrt(3 / 61)
+    km = np.asarray(p['mean_net']['kernel'])
+    assert np.abs(km).max() <= np.sqrt(3e-2 / 36) and np.abs(km).max() > 0.8 * np.sqrt(3e-2 / 36)
+    mean, log_std = actor.apply({'params': p}, jnp.ones((3, 29)), jnp.ones((3, 29)))
+    assert mean.shape == (3, 8) and not np.any(np.asarray(log_std))
+
+
+# ------------------------------------------------------------------------------------- sampler
+def _indexed_dataset(n_traj=50, length=400):
+    n = n_traj * length
+    term = np.zeros(n, bool)
+    term[length - 1::length] = True
+    obs = np.stack([np.arange(n), np.zeros(n)], 1).astype(np.float32)  # observation 0 = its own index
+    return dsm.to_device({'observations': obs, 'actions': np.zeros((n, 2), np.float32), 'terminals': term})
+
+
+def _chi2_p(counts, probs):
+    counts, probs = np.asarray(counts, float), np.asarray(probs, float)
+    keep = probs > 0
+    assert counts[~keep].sum() == 0, 'draws from a component of probability 0'
+    return stats.chisquare(counts[keep], probs[keep] * counts.sum()).pvalue
+
+
+def test_gc_sampler_mixtures_pass_a_chi_square_test_that_a_wrong_mixture_fails():
+    ds = _indexed_dataset()
+    cfg = goals.GCSampling(value=goals.GoalSampling(0.2, 0.5, 0.3, geometric=True, discount=0.9),
+                           actor=goals.GoalSampling(0.0, 0.5, 0.5, geometric=False), subgoal_offset=25)
+    n = 100_000
+    b = jax.jit(lambda k: goals.sample_gc(ds, k, n, cfg))(jax.random.PRNGKey(0))
+    vk, ak = np.bincount(np.asarray(b.value_kind), minlength=3), np.bincount(np.asarray(b.actor_kind), minlength=3)
+    assert _chi2_p(vk, [0.2, 0.5, 0.3]) > 1e-3 and _chi2_p(ak, [0.0, 0.5, 0.5]) > 1e-3
+    # the test has the power to see a mixture off by a few points
+    assert _chi2_p(vk, [0.22, 0.5, 0.28]) < 1e-6 and _chi2_p(ak, [0.0, 0.53, 0.47]) < 1e-6
+    idx, vg, ag, sub = (np.asarray(x) for x in (b.index, b.value_goal_index, b.actor_goal_index, b.subgoal_index))
+    vkind, akind = np.asarray(b.value_kind), np.asarray(b.actor_kind)
+    end = idx // 400 * 400 + 399
+    # rewards and masks from the value goal (0 / 0 at the goal, -1 / 1 elsewhere)
+    at = vg == idx
+    np.testing.assert_array_equal(np.asarray(b.rewards), np.where(at, 0.0, -1.0))
+    np.testing.assert_array_equal(np.asarray(b.masks), np.where(at, 0.0, 1.0))
+    np.testing.assert_array_equal(np.asarray(b.value_goals[:, 0]), vg)
+    # geometric value offsets: P(1) = 1 - discount away from the end
+    far = (vkind == 1) & (idx % 400 < 200)
+    assert abs(((vg - idx)[far] == 1).mean() - 0.1) < 4 * np.sqrt(0.09 / far.sum())
+    # subgoals: capped at the actor goal on the trajectory, at the end for random goals
+    t = akind == 1
+    np.testing.assert_array_equal(sub[t], np.minimum(idx[t] + 25, ag[t]))
+    np.testing.assert_array_equal(sub[~t], np.minimum(idx[~t] + 25, end[~t]))
+    assert np.any(sub[t] < np.minimum(idx[t] + 25, end[t]))  # the cap binds somewhere
+    np.testing.assert_array_equal(np.asarray(b.low_goals[:, 0]), np.minimum(idx + 25, end))
+    # 'end' caps every subgoal at the trajectory's end
+    e = goals.sample_gc(ds, jax.random.PRNGKey(1), 1000, goals.GCSampling(subgoal_cap='end'))
+    ei = np.asarray(e.index)
+    np.testing.assert_array_equal(np.asarray(e.subgoal_index), np.minimum(ei + 25, ei // 400 * 400 + 399))
+
+
+def test_sampler_settings_are_validated():
+    with pytest.raises(ValueError, match='subgoal_cap'):
+        goals.GCSampling(subgoal_cap='middle')
+    with pytest.raises(ValueError, match='sum to 1'):
+        methods.get('gcivl').preset('ci', value_p_random=0.5)
+
+
+# --------------------------------------------------------------------------------- wiring
+def _batch_and_learner(name, **over):
+    data = synthetic.point_walks(n_traj=20, t_len=60)
+    ds = dsm.to_device(data)
+    m = methods.get(name)
+    cfg = m.preset('ci', env='pointmaze-medium', conditioning='goal', **over)
+    learner = m.make(cfg, 2, 2)
+    state = learner.init(jax.random.PRNGKey(0))
+    batch = goals.sample_gc(ds, jax.random.PRNGKey(3), 16, cfg.sampling)
+    return learner, state, batch
+
+
+def test_hiql_targets_high_on_the_goal_capped_subgoal_and_low_on_the_end_capped_one():
+    learner, state, b = _batch_and_learner('hiql')
+    _, info = learner.loss(state.params, state.target, b, jax.random.PRNGKey(0))
+    p = state.params
+    rep, value, high = learner.modules['goal_rep'], learner.modules['value'], learner.modules['high_actor']
+
+    def phi(s, g):
+        return rep.apply(p['goal_rep'], jnp.concatenate([s, g], -1))
+
+    def v(s, g):
+        return np.asarray(value.apply(p['value'], s, phi(s, g))).mean(0)
+
+    s, s1 = b.observations, b.next_observations
+    assert float(info['low_actor/adv_mean']) == pytest.approx(np.mean(v(s1, b.low_goals) - v(s, b.low_goals)),
+                                                              rel=1e-5, abs=1e-7)
+    assert float(info['high_actor/adv_mean']) == pytest.approx(
+        np.mean(v(b.subgoals, b.actor_goals) - v(s, b.actor_goals)), rel=1e-5, abs=1e-7)
+    mu_h, ls_h = high.apply(p['high_actor'], s, b.actor_goals)
+    want = np.mean(np.asarray(policy.log_prob(mu_h, ls_h, phi(s, b.subgoals))))
+    assert float(info['high_actor/log_prob']) == pytest.approx(want, rel=1e-5)
+    assert np.any(np.asarray(b.subgoal_index) != np.asarray(jnp.minimum(b.index + 25, b.subgoal_index.max())))
+
+
+def test_saw_bootstraps_from_the_sub_policy_at_the_goal_capped_subgoal():
+    learner, state, b = _batch_and_learner('saw')
+    _, info = learner.loss(state.params, state.target, b, jax.random.PRNGKey(0))
+    p = state.params
+    sub = learner.modules['sub_actor']
+    ag = learner.agent(p)
+    mu_main = jax.vmap(lambda o, g: ag.controller(p, o, g, 0, None))(b.observations, b.actor_goals)
+    mu_sub = sub.apply(p['sub_actor'], b.observations, b.subgoals)[0]
+    assert float(info['waypoint/kl']) == pytest.approx(float(jnp.mean(jnp.sum((mu_main - mu_sub) ** 2, -1))), rel=1e-5)
+
+
+@pytest.mark.parametrize('name', BASELINES)
+def test_every_baseline_updates_to_finite_parameters_and_moves_its_targets(name):
+    learner, state, _ = _batch_and_learner(name)
+    ds = dsm.to_device(synthetic.point_walks(n_traj=20, t_len=60))
+    new, metrics = jax.jit(fit.chunk_step(learner.update, 5))(state, ds)
+    assert int(new.step) == 5
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(new.params))
+    assert all(np.isfinite(float(v)) for v in metrics.values())
+    keys = [k.split('/')[0] for k in metrics]
+    assert all('/' in k for k in metrics) and keys  # namespaced
+    for n in state.target:  # targets move, slowly: tau = 0.005
+        before, params, after = (jax.tree.leaves(t[n]) for t in (state.target, new.params, new.target))
+        gap0 = sum(float(jnp.sum(jnp.abs(a - b))) for a, b in zip(before, params))
+        moved = sum(float(jnp.sum(jnp.abs(a - b))) for a, b in zip(before, after))
+        assert 0 < moved < gap0
+    action = learner.agent(new.params).controller(new.params, jnp.zeros(2), jnp.ones(2), 0, None)
+    assert action.shape == (2,)
+
+
+@pytest.mark.parametrize('name', [pytest.param(n, marks=() if n == 'hiql' else pytest.mark.slow)
+                                  for n in BASELINES])
+def test_baseline_resume_is_bit_identical(tmp_path, name):
+    data = synthetic.point_walks(n_traj=20, t_len=60)
+    m = methods.get(name)
+    cfg = m.preset('ci', env='pointmaze-medium', steps=100, checkpoint_every=50, updates_per_call=50, log_every=50)
+    quiet = dict(progress=False, log=lambda *_: None)
+    ref = fit.train(m, cfg, data, str(tmp_path / 'ref'), **quiet)
+    fit.train(m, cfg, data, str(tmp_path / 'cut'), steps=50, **quiet)
+    cut = fit.train(m, None, data, str(tmp_path / 'cut'), resume=True, steps=100, **quiet)
+    assert cut.step == ref.step == 100 and cut.method == name
+    for x, y in zip(jax.tree.leaves(ref.state), jax.tree.leaves(cut.state)):
+        assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+    loaded = fit.load(str(tmp_path / 'cut'), log=lambda *_: None)
+    assert loaded.method == name and type(loaded.config) is type(cfg)
