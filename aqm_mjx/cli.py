@@ -255,8 +255,13 @@ def cmd_evaluate(a):
         raise ValueError('evaluate: the train settings are the checkpoint\'s; --set takes map., agent. and '
                          'protocol. fields here')
     cfg = None if a.preset is None else pipeline.RunConfig.preset(a.preset)
-    run.evaluate_checkpoint(a.checkpoint, cfg, dataset=a.dataset, shift=a.shift, out=a.out, seed=a.seed,
-                            overrides=overrides)
+    if len(a.checkpoint) == 1:
+        run.evaluate_checkpoint(a.checkpoint[0], cfg, dataset=a.dataset, shift=a.shift, out=a.out, seed=a.seed,
+                                overrides=overrides)
+    else:
+        out = a.out or os.path.join(os.path.dirname(os.path.normpath(a.checkpoint[0])), 'comparison')
+        run.evaluate_checkpoints(a.checkpoint, out, cfg, dataset=a.dataset, shift=a.shift, seed=a.seed,
+                                 overrides=overrides)
     return 0
 
 
@@ -363,7 +368,9 @@ def main(argv=None):
                     'of one batch, --envs environments per jitted call, sharded over all devices. Defaults: the '
                     'run preset of the checkpoint\'s training preset (--preset to choose another). Writes '
                     'OUT/results.json, success.png, trajectories.png and, with several layouts, heatmap.png.')
-    v.add_argument('--checkpoint', required=True, help='run folder written by `aqm-mjx train` (or RUN/train)')
+    v.add_argument('--checkpoint', required=True, action='append',
+                   help='run folder written by `aqm-mjx train` (or RUN/train); repeat it to put several checkpoints '
+                        '(any methods, one environment) on the same episodes')
     v.add_argument('--dataset', default=None, help='states to select keypoints from (default: the training dataset)')
     v.add_argument('--shift', default='base',
                    help="layout: 'base', 'all' (the maze's shift suite), or one variant such as close-3-3")
@@ -373,7 +380,8 @@ def main(argv=None):
                    help='override a map, agent or protocol field, e.g. --set agent.kappa=0.5 (repeatable)')
     v.add_argument('--seed', type=int, default=0,
                    help='PRNGKey(seed) split as in `aqm-mjx run`: the same seed gives the same map and episodes')
-    v.add_argument('--out', default=None, help='output folder (default CHECKPOINT/eval)')
+    v.add_argument('--out', default=None, help='output folder (default CHECKPOINT/eval; with several checkpoints '
+                                               "the first one's parent/comparison)")
     v.add_argument('--distributed', action='store_true',
                    help='multi-host: call jax.distributed.initialize() first (run the same command on every host)')
     _section_options(v)

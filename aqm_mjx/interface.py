@@ -17,6 +17,8 @@ class Agent(NamedTuple):
     Attributes:
         encode: ``(aux, obs [D]) -> latent [L]``, the quasimetric's input.
         dist: ``(aux, latent [L], latent [L]) -> scalar`` time-to-reach in control steps.
+            ``encode`` and ``dist`` are None for a method without a quasimetric (the flat
+            baselines): no map is built for it and it is evaluated as a flat controller.
         controller: ``(aux, obs [D], subgoal_obs [D], t, key) -> action [A]``.
         aux: the pytree the functions read (parameters, tables); None while not bound.
     """
@@ -25,6 +27,11 @@ class Agent(NamedTuple):
     dist: Callable
     controller: Callable
     aux: Any = None
+
+    @property
+    def plans(self) -> bool:
+        """Whether the agent has a quasimetric to map and plan with."""
+        return self.dist is not None
 
     def bind(self, aux: Any) -> 'Agent':
         """The same functions with parameters ``aux``."""

@@ -18,6 +18,7 @@ import dataclasses
 from typing import Any, Callable, Optional
 
 import jax
+import jax.numpy as jnp
 
 from aqm_mjx import config as cfg_lib
 from aqm_mjx.agent.rollout import make_rollout
@@ -122,7 +123,7 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
     """
     learner = methods.get(cfg.method).make(cfg.train, env.obs_size, env.action_size)
     agent = learner.agent()  # parameters come from training, inside run
-    episodes = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)
+    episodes = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=agent.plans)
     rollout = make_rollout(env, agent, cfg.agent, episodes.steps)
 
     def run(key, ds: ds_io.Dataset) -> dict:
@@ -130,14 +131,18 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         # TRAIN
         state, metrics = fit.train_scan(learner, k_train, ds, progress)
         params = learner.params(state)
-        # MAP: keypoints and graph from dataset states
-        graph, kp = build_map(agent, ds.observations, cfg.map, k_map, params)
+        # MAP: keypoints and graph from dataset states (none for a method without a quasimetric)
+        if agent.plans:
+            graph, kp = build_map(agent, ds.observations, cfg.map, k_map, params)
+            count, overflow = kp.count, kp.overflow
+        else:
+            graph, count, overflow = None, jnp.int32(0), jnp.bool_(False)
         # EVALUATE: every agent x layout x task x episode in one batch
         out = rollout(params, graph, proto.table_inputs(episodes, k_eval))
         success = out['success'] > 0
         rates, _ = proto.success_rates(episodes, success, out['pruned'])
-        return dict(success=rates, episode_success=success, pruned=out['pruned'], keypoints=kp.count,
-                    overflow=kp.overflow, metrics=metrics, params=params)
+        return dict(success=rates, episode_success=success, pruned=out['pruned'], keypoints=count,
+                    overflow=overflow, metrics=metrics, params=params)
 
     run.episodes, run.learner = episodes, learner
     return run

@@ -19,7 +19,7 @@ from aqm_mjx import envs, files
 from aqm_mjx.data import collect
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
-from aqm_mjx.evaluation import report
+from aqm_mjx.evaluation import plots, report
 from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.evaluation.evaluate import device_mesh, evaluate, put_global
 from aqm_mjx.learn import fit
@@ -76,11 +76,15 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
     """The map from ``observations`` and the protocol for a trained method, then the report in
     ``out`` (``results.json`` and pictures). Returns ``(Results, report dict)``."""
     agent = trained.agent
-    graph, m = trimmed_map(agent, observations, cfg.map, k_map)
+    if agent.plans:
+        graph, m = trimmed_map(agent, observations, cfg.map, k_map)
+    else:  # a flat method: no quasimetric, no map
+        graph, m = None, dict(keypoints=0, overflow=False, seconds=0.0)
+        log(f'{trained.method} has no quasimetric: no map, its controller is evaluated flat')
     if m['overflow']:
         log(f'warning: {cfg.map.max_keypoints} keypoints did not cover the candidates at delta {cfg.map.delta}; '
             'raise --max-keypoints or --delta')
-    n_agents = 1 + len(cfg.protocol.ablations)
+    n_agents = 1 + len(cfg.protocol.ablations) if agent.plans else 1
     log(f'{env.name}, {trained.method} {trained.config.preset} preset at step {trained.step}: {m["keypoints"]} '
         f'keypoints at delta {cfg.map.delta} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
         f'{len(cfg.protocol.tasks) or env.num_tasks} tasks x {cfg.protocol.episodes} episodes on '
@@ -96,6 +100,26 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
     return res, rep
 
 
+def _prepare(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], shift: str, overrides):
+    """Everything an evaluation of ``checkpoint`` needs, checked before anything is loaded or built:
+    ``(env, variants, RunConfig, dataset path)``."""
+    method, train_cfg, meta = fit.read_meta(checkpoint)
+    if train_cfg.env is None:
+        raise ValueError(f'{checkpoint} does not record its environment (config.env); it cannot be evaluated')
+    env = envs.make(train_cfg.env)
+    variants = variants_for(env.maze, shift)
+    path = dataset or meta.get('dataset')
+    if not path or not os.path.exists(path):
+        raise FileNotFoundError(f'dataset {path!r} of {checkpoint} not found (keypoints are selected from its '
+                                'states); pass --dataset')
+    if cfg is None:
+        cfg = RunConfig.preset(preset_for_name(train_cfg.preset), method=method.name, env=train_cfg.env)
+    cfg = RunConfig(method=method.name, train=train_cfg, map=cfg.map, agent=cfg.agent,
+                    protocol=cfg.protocol).with_overrides(list(overrides))
+    plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)  # bad task ids fail before any work
+    return env, variants, cfg, path
+
+
 def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, dataset: Optional[str] = None,
                         shift: str = 'base', out: Optional[str] = None, seed: int = 0, overrides=(), log=print):
     """``aqm-mjx evaluate``: load a run folder, map, evaluate, write ``results.json`` and pictures.
@@ -105,25 +129,67 @@ def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, datase
     episode keys are :func:`~aqm_mjx.pipeline.stage_keys` of ``PRNGKey(seed)``, as in ``aqm-mjx run``.
     Layouts, tasks and the dataset are checked before anything is loaded or built.
     """
-    method, train_cfg, meta = fit.read_meta(checkpoint)
-    if train_cfg.env is None:
-        raise ValueError(f'{checkpoint} does not record its environment (config.env); it cannot be evaluated')
-    env = envs.make(train_cfg.env)
-    variants = variants_for(env.maze, shift)
-    path = dataset or meta.get('dataset')
-    if not path or not os.path.exists(path):
-        raise FileNotFoundError(f'keypoints are selected from dataset states: {path!r} not found; pass --dataset')
-    if cfg is None:
-        cfg = RunConfig.preset(preset_for_name(train_cfg.preset), method=method.name, env=train_cfg.env)
-    cfg = RunConfig(method=method.name, train=train_cfg, map=cfg.map, agent=cfg.agent,
-                    protocol=cfg.protocol).with_overrides(list(overrides))
-    plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)  # bad task ids fail before any work
+    env, variants, cfg, path = _prepare(checkpoint, cfg, dataset, shift, overrides)
     trained = fit.load(checkpoint, log=log)
     data = read_data(path, env)
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
     info = dict(checkpoint=os.path.abspath(checkpoint), dataset=os.path.abspath(path), seed=seed)
     return map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval,
                             out or os.path.join(checkpoint, 'eval'), info, log)
+
+
+def checkpoint_labels(checkpoints) -> list[str]:
+    """Row labels of several checkpoints: the method's name, or the run folder's where methods repeat."""
+    names = [fit.read_meta(c)[0].name for c in checkpoints]
+    folders = [os.path.basename(os.path.normpath(c)) or c for c in checkpoints]
+    labels = [n if names.count(n) == 1 else f'{n}:{f}' for n, f in zip(names, folders)]
+    if len(set(labels)) != len(labels):
+        labels = [f'{n}:{i}' for i, n in enumerate(names)]
+    return labels
+
+
+def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None, dataset: Optional[str] = None,
+                         shift: str = 'base', seed: int = 0, overrides=(), log=print) -> dict:
+    """``aqm-mjx evaluate --checkpoint A --checkpoint B ...``: several checkpoints (any methods, one
+    environment) on the same episodes: the same protocol, layouts, tasks and episode keys
+    (:func:`~aqm_mjx.pipeline.stage_keys` of ``PRNGKey(seed)``). Each is written to ``out/LABEL``;
+    ``out/results.json`` holds the table ``{LABEL/agent: {layout: {'task_T': rate, 'mean': rate}}}``
+    and ``out/success.png`` its bars. Every checkpoint is checked before any is evaluated."""
+    checkpoints = list(checkpoints)
+    if not checkpoints:
+        raise ValueError('give at least one --checkpoint')
+    prepared = [_prepare(c, cfg, dataset, shift, overrides) for c in checkpoints]
+    env_names = sorted({p[0].name for p in prepared})
+    if len(env_names) > 1:
+        raise ValueError(f'the checkpoints were trained on different environments ({", ".join(env_names)}); '
+                         'compare checkpoints of one environment')
+    labels = checkpoint_labels(checkpoints)
+    _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
+    table, per = {}, {}
+    for label, ckpt, (env, variants, c, path) in zip(labels, checkpoints, prepared):
+        log(f'== {label} ({ckpt})')
+        trained = fit.load(ckpt, log=log)
+        data = read_data(path, env)
+        info = dict(checkpoint=os.path.abspath(ckpt), dataset=os.path.abspath(path), seed=seed)
+        res, rep = map_and_evaluate(trained, env, data['observations'], c, variants, k_map, k_eval,
+                                    os.path.join(out, label), info, log)
+        per[label] = dict(checkpoint=os.path.abspath(ckpt), method=trained.method, step=trained.step,
+                          keypoints=rep['keypoints'])
+        for agent_name in res.agents:
+            table[f'{label}/{agent_name}'] = res.summary[agent_name]
+    env, variants = prepared[0][0], prepared[0][1]
+    first = list(variants)[0]
+    combined = dict(env=env.name, seed=seed, episodes=prepared[0][2].protocol.episodes, checkpoints=per,
+                    tasks=res.tasks, variants=list(variants), summary=table)
+    files.write_json(os.path.join(out, 'results.json'), combined, makedirs=True)
+    plots.success_bars(table, first, res.tasks, os.path.join(out, 'success.png'),
+                       title=f'{env.name} ({first}): every checkpoint on the same episodes')
+    width = max(len(k) for k in table)
+    log(f'{"checkpoint/agent":<{width}}  mean success ({first})')
+    for k, row in table.items():
+        log(f'{k:<{width}}  {100 * row[first]["mean"]:5.1f}%')
+    log(f'wrote {out}/results.json and {out}/success.png')
+    return combined
 
 
 # ------------------------------------------------------------------------------------- the run
@@ -167,9 +233,10 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
                     times_s={k: round(v, 1) for k, v in times.items()},
                     pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')])
     files.write_json(os.path.join(out, 'summary.json'), summary_)
-    aqm = res.summary['aqm'][res.variants[0]]
-    log(f'AQM on {env_name} ({res.variants[0]}): {100 * aqm["mean"]:.0f}% mean success ('
-        + ', '.join(f'task {t}: {100 * aqm[f"task_{t}"]:.0f}%' for t in res.tasks) + f'); {rep["keypoints"]} '
+    head = res.agents[0]  # 'aqm', or 'flat' for a method without a quasimetric
+    row = res.summary[head][res.variants[0]]
+    log(f'{cfg.method} ({head}) on {env_name} ({res.variants[0]}): {100 * row["mean"]:.0f}% mean success ('
+        + ', '.join(f'task {t}: {100 * row[f"task_{t}"]:.0f}%' for t in res.tasks) + f'); {rep["keypoints"]} '
         'keypoints; ' + ', '.join(f'{k[:-2]} {v:.0f} s' for k, v in times.items()))
     log(f'wrote {out}/summary.json; map and trajectories: {out}/eval/trajectories.png')
     return summary_
@@ -215,7 +282,8 @@ def run_one_program(cfg: RunConfig, data: dict, seeds: int, log=print) -> dict:
     per_seed = [summary(run, jax.tree.map(lambda x: x[i], out)) for i in range(seeds)]
     first = list(run.episodes.variants)[0]
     for i, s in enumerate(per_seed):
-        log(f'seed {seed + i}: AQM mean success {100 * s["aqm"][first]["mean"]:.0f}%, '
+        head = run.episodes.agents[0]
+        log(f'seed {seed + i}: {cfg.method} ({head}) mean success {100 * s[head][first]["mean"]:.0f}%, '
             f'{int(out["keypoints"][i])} keypoints')
     log(f'one program, {seeds} seeds: compile {t_compile:.1f} s, run {t_run:.1f} s')
     return dict(env=env.name, seeds=[seed + i for i in range(seeds)], config=cfg.to_dict(), success=per_seed,

@@ -1,6 +1,8 @@
 """The baselines: losses by hand on tiny inputs, the goal sampler's mixtures against a chi-square
 test that a wrong mixture fails, the wiring of HIQL's and SAW's targets, and resume."""
 
+import os
+
 import numpy as np
 import jax
 import jax.numpy as jnp
@@ -256,3 +258,65 @@ def test_baseline_resume_is_bit_identical(tmp_path, name):
         assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
     loaded = fit.load(str(tmp_path / 'cut'), log=lambda *_: None)
     assert loaded.method == name and type(loaded.config) is type(cfg)
+
+
+# ------------------------------------------------------------------------------- evaluation
+def test_a_flat_method_is_evaluated_without_a_map(tmp_path):
+    from aqm_mjx import run as run_lib
+
+    data = synthetic.point_walks(n_traj=30, t_len=60)
+    path = str(tmp_path / 'pointmaze-medium-navigate.npz')
+    np.savez(path, **data)
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=50)
+    fit.train('gcbc', cfg, data, str(tmp_path / 'gcbc'), progress=False, log=lambda *_: None, dataset_path=path)
+    lines = []
+    res, rep = run_lib.evaluate_checkpoint(str(tmp_path / 'gcbc'), overrides=['protocol.episodes=2',
+                                           'protocol.horizon=30', 'protocol.tasks=1'], log=lines.append)
+    assert res.agents == ['flat'] and rep['keypoints'] == 0 and rep['edges'] == 0
+    assert int(res.pruned.sum()) == 0 and len(res.success) == 2
+    assert any('no quasimetric' in str(ln) for ln in lines)
+    assert os.path.exists(tmp_path / 'gcbc' / 'eval' / 'trajectories.png')
+
+
+@pytest.mark.slow
+def test_flat_methods_meet_the_same_episodes_as_aqm_and_compare_in_one_table(tmp_path):
+    from aqm_mjx import envs
+    from aqm_mjx import run as run_lib
+    from aqm_mjx.agent.rules import AgentConfig
+    from aqm_mjx.evaluation.evaluate import evaluate
+    from aqm_mjx.evaluation.protocol import ProtocolConfig
+    from aqm_mjx.mapping.build import trimmed_map
+    from aqm_mjx.pipeline import RunConfig
+
+    data = synthetic.point_walks(n_traj=60, t_len=60)
+    path = str(tmp_path / 'pointmaze-medium-navigate.npz')
+    np.savez(path, **data)
+    quiet = dict(progress=False, log=lambda *_: None, dataset_path=path)
+    for name in ('aqm', 'gcbc'):
+        cfg = methods.get(name).preset('ci', env='pointmaze-medium', steps=100)
+        fit.train(name, cfg, data, str(tmp_path / name), **quiet)
+    # the AQM model's flat row and the same controller without a quasimetric: identical episodes
+    env = envs.make('pointmaze-medium')
+    trained = fit.load(str(tmp_path / 'aqm'), log=lambda *_: None)
+    rc = RunConfig.preset('ci', env='pointmaze-medium')
+    graph, _ = trimmed_map(trained.agent, data['observations'], rc.map, jax.random.PRNGKey(1))
+    proto = ProtocolConfig(episodes=2, horizon=40, tasks=(1, 2), envs=16)
+    full = evaluate(env, trained.agent, graph, AgentConfig(kappa=0.0, switch_radius=0.6), proto, progress=False)
+    flat_agent = trained.agent._replace(encode=None, dist=None)
+    flat = evaluate(env, flat_agent, None, AgentConfig(), proto, progress=False)
+    assert flat.agents == ['flat'] and full.agents == ['aqm', 'no-pruning', 'flat']
+    for t in (1, 2):
+        np.testing.assert_array_equal(flat.traces[('flat', 'base', t)]['xy'], full.traces[('flat', 'base', t)]['xy'])
+    assert flat.summary['flat'] == full.summary['flat']
+    # several checkpoints, one table
+    over = ['protocol.episodes=2', 'protocol.horizon=40', 'protocol.tasks=1,2']
+    out = str(tmp_path / 'cmp')
+    combined = run_lib.evaluate_checkpoints([str(tmp_path / 'aqm'), str(tmp_path / 'gcbc')], out, overrides=over,
+                                            log=lambda *_: None)
+    assert list(combined['summary']) == ['aqm/aqm', 'aqm/no-pruning', 'aqm/flat', 'gcbc/flat']
+    assert combined['checkpoints']['gcbc']['keypoints'] == 0
+    assert os.path.exists(os.path.join(out, 'success.png')) and os.path.exists(os.path.join(out, 'gcbc', 'results.json'))
+    with pytest.raises(ValueError, match='different environments'):
+        bad = methods.get('gcbc').preset('ci', env='pointmaze-large', steps=50)
+        fit.train('gcbc', bad, data, str(tmp_path / 'large'), **quiet)
+        run_lib.evaluate_checkpoints([str(tmp_path / 'aqm'), str(tmp_path / 'large')], out, overrides=over)

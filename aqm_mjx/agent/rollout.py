@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.agent.rules import AgentConfig, agent_init, agent_step, redirect, replan
+from aqm_mjx.agent.rules import MAX_CUTS, AgentConfig, agent_init, agent_step, redirect, replan
 from aqm_mjx.interface import Agent
 from aqm_mjx.mapping.graph import Graph
 
@@ -60,12 +60,16 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
         agent: its functions are used; parameters come as ``aux`` at call time.
         cfg: the agent's rules; steps: control steps per episode.
         record_actions: also return the clipped actions ``[T, B, A]`` (benchmarks replay them).
+    An agent without a quasimetric (``agent.dist`` None: the flat baselines) gets a program that
+    aims its controller at the goal and ignores ``graph`` (which may be None).
     Returns:
         ``run(aux, graph, inputs: EpisodeInputs) -> dict`` with ``success [B]`` (at the goal at the
         last step), ``pruned [B]``, ``cuts [B, MAX_CUTS, 2]``, ``xy [T, B, 2]``, ``node [T, B]``
         and ``goal_xy [B, 2]``.
     """
     slots = cfg.slots
+    if agent.dist is None:
+        return _flat_rollout(env, agent, steps, record_actions)
 
     def run(aux: Any, graph: Graph, inputs: EpisodeInputs):
         d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
@@ -94,6 +98,35 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
         (states, agents), trace = jax.lax.scan(body, (states, agents), jnp.arange(steps))
         out = dict(success=states.success, pruned=agents.pruned, cuts=agents.cuts, xy=trace[0], node=trace[1],
                    goal_xy=states.goal_xy)
+        if record_actions:
+            out['actions'] = trace[2]
+        return out
+
+    return run
+
+
+def _flat_rollout(env, agent: Agent, steps: int, record_actions: bool):
+    """The program of an agent without a quasimetric (``agent.dist is None``): its controller aimed
+    at the goal at every step, the graph ignored; outputs as :func:`make_rollout`'s (nothing pruned,
+    ``node`` -1)."""
+
+    def run(aux: Any, graph, inputs: EpisodeInputs):
+        del graph
+        k_reset, k_act = inputs.keys[:, 0], inputs.keys[:, 1]
+        states = jax.vmap(env.reset)(k_reset, inputs.task_ids, inputs.grids)
+        b = inputs.task_ids.shape[0]
+
+        def body(states, t):
+            keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)
+            actions = jax.vmap(lambda o, g, k: agent.controller(aux, o, g, t, k))(states.obs, states.goal, keys_t)
+            actions = jnp.clip(actions, -1.0, 1.0)
+            states = jax.vmap(env.step)(states, actions)
+            trace = (states.data.qpos[:, :2], jnp.full((b,), -1, jnp.int32)) + ((actions,) if record_actions else ())
+            return states, trace
+
+        states, trace = jax.lax.scan(body, states, jnp.arange(steps))
+        out = dict(success=states.success, pruned=jnp.zeros((b,), jnp.int32),
+                   cuts=jnp.full((b, MAX_CUTS, 2), -1, jnp.int32), xy=trace[0], node=trace[1], goal_xy=states.goal_xy)
         if record_actions:
             out['actions'] = trace[2]
         return out

@@ -82,14 +82,15 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     Args:
         env: a :class:`aqm_mjx.envs.MazeEnv`.
         agent: any :class:`~aqm_mjx.interface.Agent` with its parameters bound.
-        graph: from :func:`aqm_mjx.mapping.build.build_map` (or trimmed).
+        graph: from :func:`aqm_mjx.mapping.build.build_map` (or trimmed); None for an agent that
+            does not plan (then only its flat row is run).
         cfg: the agent's rules (its ``kappa`` is the AQM row's).
         variants: ``{name: grid [H, W]}``; default ``{'base': the maze's layout}``.
         key: base of the episode keys (default ``PRNGKey(0)``).
         mesh: devices to shard the environments over (default: all devices).
         program: a compiled chunk from :func:`make_program` to reuse (its ``steps`` and ``mesh``).
     """
-    eps = proto.plan_episodes(env, protocol, cfg.kappa, variants)
+    eps = proto.plan_episodes(env, protocol, cfg.kappa, variants, plans=agent.plans)
     table = eps.table
     mesh = device_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size

@@ -44,8 +44,11 @@ class ProtocolConfig:
         agent_specs(1.0, self.ablations)  # validates the ablation names
 
 
-def agent_specs(kappa: float, ablations) -> list[tuple[str, float, bool]]:
-    """``[(name, kappa, use_graph)]``: the AQM agent at ``kappa`` first, then the ablations."""
+def agent_specs(kappa: float, ablations, plans: bool = True) -> list[tuple[str, float, bool]]:
+    """``[(name, kappa, use_graph)]``: the AQM agent at ``kappa`` first, then the ablations; for a
+    method without a quasimetric (``plans`` False) the flat controller alone."""
+    if not plans:
+        return [(FLAT, math.inf, False)]
     out = [(AQM, float(kappa), True)]
     for a in ablations:
         if a == NO_PRUNING:
@@ -115,9 +118,11 @@ class Episodes(NamedTuple):
         return len(self.specs), len(self.grids), len(self.task_ids)
 
 
-def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optional[dict] = None) -> Episodes:
+def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optional[dict] = None,
+                  plans: bool = True) -> Episodes:
     """Validate the layouts and task ids of an evaluation and lay out its episode table
-    (``kappa``: the AQM agent's budget slack)."""
+    (``kappa``: the AQM agent's budget slack; ``plans`` False: a method without a quasimetric, one
+    flat row). The episode keys do not depend on the agents, so every method meets the same episodes."""
     variants = {'base': env.layout} if variants is None else dict(variants)
     grids = np.stack([mazes.validate_grid(g, env.maze) for g in variants.values()])
     valid_ids = {t.task_id for t in mazes.tasks(env.maze)}
@@ -125,7 +130,7 @@ def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optiona
     bad = [t for t in task_ids if t not in valid_ids]
     if bad:
         raise ValueError(f'task ids {bad} do not exist in maze {env.maze!r} (it has {sorted(valid_ids)})')
-    specs = agent_specs(kappa, protocol.ablations)
+    specs = agent_specs(kappa, protocol.ablations, plans)
     table = episode_table(specs, len(grids), task_ids, protocol.episodes)
     return Episodes(variants, grids, task_ids, specs, table, int(protocol.horizon or env.max_episode_steps))
 

@@ -26,15 +26,17 @@ def print_summary(res: Results, log=print) -> None:
             log(f'{a + " / " + v:<{width}}' + ''.join(cells))
 
 
-def write(res: Results, graph: Graph, layout, variants: dict, out: str, env_name: str, episodes: int,
+def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str, env_name: str, episodes: int,
           info: dict, name: Optional[str] = None) -> dict:
     """Write ``out/results.json``, ``success.png``, ``trajectories.png`` and, with several layouts,
     ``heatmap.png``. ``info`` is merged into the JSON (config, checkpoint, keypoints, ...).
     Returns the report written."""
     os.makedirs(out, exist_ok=True)
-    mask = np.asarray(graph.mask)
-    nodes_xy = np.asarray(graph.obs)[:, :2]
-    edges = edge_list(graph.w, mask)
+    if graph is None:  # a method without a map
+        nodes_xy, edges = np.zeros((0, 2)), np.zeros((0, 2), int)
+    else:
+        nodes_xy = np.asarray(graph.obs)[:, :2]
+        edges = edge_list(graph.w, np.asarray(graph.mask))
     report = dict(env=env_name, **info, edges=int(len(edges)), agents=res.agents, variants=res.variants,
                   tasks=res.tasks, summary=res.summary, timing=res.timing, backend=jax.default_backend(),
                   device=str(jax.devices()[0]), device_count=jax.device_count())
@@ -42,7 +44,7 @@ def write(res: Results, graph: Graph, layout, variants: dict, out: str, env_name
     first = res.variants[0]
     plots.success_bars(res.summary, first, res.tasks, os.path.join(out, 'success.png'),
                        title=f'{env_name} ({first}): success per task, {episodes} episodes each')
-    plots.trajectory_panels(layout, variants, res.traces, nodes_xy, edges, 'aqm', res.tasks[0],
+    plots.trajectory_panels(layout, variants, res.traces, nodes_xy, edges, res.agents[0], res.tasks[0],
                             os.path.join(out, 'trajectories.png'))
     if len(variants) > 1:
         vals = np.array([[res.summary[a][v]['mean'] for v in res.variants] for a in res.agents])
@@ -50,3 +52,4 @@ def write(res: Results, graph: Graph, layout, variants: dict, out: str, env_name
                       os.path.join(out, 'heatmap.png'),
                       title=f'{env_name}: trained on base, evaluated on each layout (mean success)')
     return report
+
