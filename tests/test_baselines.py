@@ -243,7 +243,7 @@ def test_every_baseline_updates_to_finite_parameters_and_moves_its_targets(name)
     assert action.shape == (2,)
 
 
-@pytest.mark.parametrize('name', [pytest.param(n, marks=() if n == 'hiql' else pytest.mark.slow)
+@pytest.mark.parametrize('name', [pytest.param(n, marks=pytest.mark.slow)
                                   for n in BASELINES])
 def test_baseline_resume_is_bit_identical(tmp_path, name):
     data = synthetic.point_walks(n_traj=20, t_len=60)
@@ -320,3 +320,59 @@ def test_flat_methods_meet_the_same_episodes_as_aqm_and_compare_in_one_table(tmp
         bad = methods.get('gcbc').preset('ci', env='pointmaze-large', steps=50)
         fit.train('gcbc', bad, data, str(tmp_path / 'large'), **quiet)
         run_lib.evaluate_checkpoints([str(tmp_path / 'aqm'), str(tmp_path / 'large')], out, overrides=over)
+
+
+# --------------------------------------------------------------------------------- value sanity
+def _grid_values(name, learner, params, cells):
+    """``[C, C]`` a distance-like score from cell i to goal j (larger = farther)."""
+    s = jnp.repeat(cells, len(cells), 0)
+    g = jnp.tile(cells, (len(cells), 1))
+    if name == 'gcivl':
+        v = learner.modules['value'].apply(params['value'], s, g).mean(0)
+    elif name == 'hiql':
+        phi = learner.modules['goal_rep'].apply(params['goal_rep'], jnp.concatenate([s, g], -1))
+        v = learner.modules['value'].apply(params['value'], s, phi).mean(0)
+    elif name == 'qrl':
+        ag = learner.agent(params)
+        return np.asarray(jax.vmap(lambda a, b: ag.dist(params, ag.encode(params, a), ag.encode(params, b)))(s, g)
+                          ).reshape(len(cells), len(cells))
+    else:  # crl: the critic's logit at the best of the four moves
+        moves = jnp.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+        q = jnp.stack([learner.modules['critic'].apply(params['critic'], s, g, jnp.broadcast_to(m, s.shape))[0].mean(0)
+                       for m in moves])
+        v = q.max(0)
+    return -np.asarray(v).reshape(len(cells), len(cells))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('name', ['gcivl', 'hiql', 'qrl', 'crl'])
+def test_values_order_states_by_shortest_path_on_the_one_way_grid(name):
+    grid = synthetic.one_way_grid(5, one_way_column=2, open_rows=(4,))
+    data = synthetic.grid_walks(grid, episodes=400, steps=40, seed=0)
+    truth = synthetic.shortest_steps(grid)
+    m = methods.get(name)
+    over = dict(env=None, steps=6000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=500,
+                value_hidden=(64, 64), actor_hidden=(32,), lr=1e-3, conditioning='goal', subgoal_offset=3)
+    if name in ('qrl', 'crl'):
+        over['latent'] = 64
+    cfg = m.preset('ci', **over)
+    learner = m.make(cfg, 2, 2)
+    state = learner.init(jax.random.PRNGKey(0))
+    ds = dsm.to_device(data)
+    chunk = jax.jit(fit.chunk_step(learner.update, cfg.updates_per_call))
+    for _ in range(cfg.chunks):
+        state, _ = chunk(state, ds)
+    cells = jnp.array([(x, y) for x in range(5) for y in range(5)], jnp.float32)
+    d = _grid_values(name, learner, state.params, cells)
+    off = ~np.eye(25, dtype=bool)
+    rho = stats.spearmanr(d[off], truth[off]).correlation
+    assert rho >= 0.8, (name, rho)
+
+
+def test_length_normalize_scales_to_sqrt_dim_and_keeps_zero_finite():
+    x = jnp.array([[3.0, 4.0], [0.0, 0.0]])
+    y = np.asarray(networks.length_normalize(x))
+    np.testing.assert_allclose(y[0], np.array([3.0, 4.0]) / 5 * np.sqrt(2), rtol=1e-6)
+    assert np.all(y[1] == 0)
+    g = jax.grad(lambda v: networks.length_normalize(v).sum())(x)
+    assert np.all(np.isfinite(np.asarray(g)))

@@ -111,8 +111,11 @@ class Bilinear(nn.Module):
 
 
 def length_normalize(x: jax.Array) -> jax.Array:
-    """``x`` scaled to length ``sqrt(dim)`` along the last axis."""
-    return x / jnp.linalg.norm(x, axis=-1, keepdims=True) * jnp.sqrt(x.shape[-1])
+    """``x`` scaled to length ``sqrt(dim)`` along the last axis. The norm is floored at 1e-6 (OGBench
+    divides by it as is), so a zero vector, e.g. the representation of the all-zero input [s; g] at
+    initialisation, gives 0 rather than NaN."""
+    norm = jnp.sqrt(jnp.maximum(jnp.sum(jnp.square(x), axis=-1, keepdims=True), 1e-12))  # finite gradient at 0
+    return x / norm * jnp.sqrt(x.shape[-1])
 
 
 class GoalRep(nn.Module):
