@@ -138,9 +138,9 @@ def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, datase
                             out or os.path.join(checkpoint, 'eval'), info, log)
 
 
-def checkpoint_labels(checkpoints) -> list[str]:
-    """Row labels of several checkpoints: the method's name, or the run folder's where methods repeat."""
-    names = [fit.read_meta(c)[0].name for c in checkpoints]
+def checkpoint_labels(checkpoints, names) -> list[str]:
+    """Row labels of several checkpoints of methods ``names``: the method's name, or with the run
+    folder's where methods repeat."""
     folders = [os.path.basename(os.path.normpath(c)) or c for c in checkpoints]
     labels = [n if names.count(n) == 1 else f'{n}:{f}' for n, f in zip(names, folders)]
     if len(set(labels)) != len(labels):
@@ -163,7 +163,7 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
     if len(env_names) > 1:
         raise ValueError(f'the checkpoints were trained on different environments ({", ".join(env_names)}); '
                          'compare checkpoints of one environment')
-    labels = checkpoint_labels(checkpoints)
+    labels = checkpoint_labels(checkpoints, [p[2].method for p in prepared])  # config.json read once, in _prepare
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
     table, per = {}, {}
     for label, ckpt, (env, variants, c, path) in zip(labels, checkpoints, prepared):

@@ -24,7 +24,7 @@ from aqm_mjx import config as cfg_lib
 from aqm_mjx.data import goals
 from aqm_mjx.data.dataset import Dataset
 from aqm_mjx.interface import Agent
-from aqm_mjx.learn import policy
+from aqm_mjx.learn import losses, networks, policy
 from aqm_mjx.learn.learner import Learner, LoopConfig, option
 
 
@@ -59,10 +59,8 @@ class BaselineConfig(LoopConfig):
         for f in dataclasses.fields(self):
             if f.metadata.get('choices'):
                 cfg_lib.check_choice(type(self).__name__, f.name, getattr(self, f.name), f.metadata['choices'])
-        for name in ('lr',):
-            v = float(getattr(self, name))
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f'{name} must be a finite number > 0; got {v}')
+        if not (math.isfinite(float(self.lr)) and self.lr > 0):
+            raise ValueError(f'lr must be a finite number > 0; got {self.lr}')
         if not 0.0 < self.tau <= 1.0:
             raise ValueError(f'tau must be in (0, 1]; got {self.tau}')
         if any(h < 1 for h in (*self.actor_hidden, *self.value_hidden)):
@@ -163,3 +161,36 @@ def example_inputs(obs_size: int, action_size: int, cfg: BaselineConfig):
     """``(obs [1, D], goal_in [1, G], action [1, A])`` zeros for module initialisation."""
     g = policy.goal_input_size(obs_size, cfg.conditioning)
     return jnp.zeros((1, obs_size)), jnp.zeros((1, g)), jnp.zeros((1, action_size))
+
+
+def ivl_terms(heads: Callable, params, target, batch, discount: float, expectile: float):
+    """The IVL value loss that GCIVL, HIQL and SAW share, and the value their actors' advantages read.
+
+    Args:
+        heads: ``(params, obs [B, D], goal [B, D]) -> [2, B]``, reading ``params['value']`` (and any
+            other module it needs, e.g. HIQL's ``goal_rep``).
+        target: ``{'value': target parameters}``; the target heads use it with every other module
+            held fixed (HIQL's and SAW's target value reads the online goal representation).
+    Returns:
+        ``(loss, info, v_mean)`` with ``v_mean(obs, goal) -> [B]`` the mean of the online heads,
+        without gradient.
+    """
+    fixed = jax.lax.stop_gradient(params)
+    held = {**fixed, **target}
+    s, s1, vg = batch.observations, batch.next_observations, batch.value_goals
+    loss, info = losses.ivl_value_loss(heads(params, s, vg), heads(held, s, vg), heads(held, s1, vg), batch.rewards,
+                                       batch.masks, discount, expectile)
+
+    def v_mean(obs, goal):
+        return jnp.mean(heads(fixed, obs, goal), axis=0)
+
+    return loss, info, v_mean
+
+
+def rep_value_heads(rep: networks.GoalRep, value: networks.Value) -> Callable:
+    """``heads(params, obs, goal) -> [2, B]`` of V(s, phi([s; g])) (HIQL's and SAW's value)."""
+
+    def heads(p, obs, goal):
+        return value.apply(p['value'], obs, rep.apply(p['goal_rep'], jnp.concatenate([obs, goal], axis=-1)))
+
+    return heads

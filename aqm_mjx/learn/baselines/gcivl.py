@@ -21,15 +21,13 @@ class GCIVLConfig(base.BaselineConfig):
     alpha: float = option(10.0, 'AWR temperature')
 
 
-def value_mean(value, p, obs, goal):
-    """Mean of the two heads: ``[B]``."""
-    return jnp.mean(value.apply(p, obs, goal), axis=0)
-
-
 def make(cfg: GCIVLConfig, obs_size: int, action_size: int):
     value = networks.Value(cfg.value_hidden, cfg.layer_norm)
     actor = networks.Actor(cfg.actor_hidden, action_size, cfg.const_std)
     x, g, _ = base.example_inputs(obs_size, action_size, cfg)
+
+    def heads(p, obs, goal):
+        return value.apply(p['value'], obs, goal)
 
     def init_params(key):
         k_v, k_a = jax.random.split(key)
@@ -37,12 +35,9 @@ def make(cfg: GCIVLConfig, obs_size: int, action_size: int):
 
     def loss(params, target, batch, key):
         del key
-        s, s1, vg, ag = batch.observations, batch.next_observations, batch.value_goals, batch.actor_goals
-        l_v, info = losses.ivl_value_loss(value.apply(params['value'], s, vg), value.apply(target['value'], s, vg),
-                                          value.apply(target['value'], s1, vg), batch.rewards, batch.masks,
-                                          cfg.discount, cfg.expectile)
-        pv = jax.lax.stop_gradient(params['value'])
-        adv = value_mean(value, pv, s1, ag) - value_mean(value, pv, s, ag)
+        s, s1, ag = batch.observations, batch.next_observations, batch.actor_goals
+        l_v, info, v_mean = base.ivl_terms(heads, params, target, batch, cfg.discount, cfg.expectile)
+        adv = v_mean(s1, ag) - v_mean(s, ag)
         mean, log_std = actor.apply(params['actor'], s, base.goal_in(cfg, s, ag))
         l_a, a_info = losses.awr_actor_loss(policy.log_prob(mean, log_std, batch.actions), adv, cfg.alpha)
         return l_v + l_a, {**info, **a_info, 'actor/mse': jnp.mean(jnp.square(mean - batch.actions))}

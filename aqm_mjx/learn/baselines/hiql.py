@@ -41,9 +41,7 @@ def make(cfg: HIQLConfig, obs_size: int, action_size: int):
     def phi(p, s, goal):
         return rep.apply(p, jnp.concatenate([s, goal], axis=-1))
 
-    def v(p_rep, p_value, s, goal):
-        """``[2, B]`` heads of V(s, phi([s; goal]))."""
-        return value.apply(p_value, s, phi(p_rep, s, goal))
+    heads = base.rep_value_heads(rep, value)
 
     def init_params(key):
         k_r, k_v, k_l, k_h = jax.random.split(key, 4)
@@ -52,16 +50,9 @@ def make(cfg: HIQLConfig, obs_size: int, action_size: int):
 
     def loss(params, target, batch, key):
         del key
-        s, s1, vg = batch.observations, batch.next_observations, batch.value_goals
+        s, s1 = batch.observations, batch.next_observations
         fixed = jax.lax.stop_gradient(params)
-        l_v, info = losses.ivl_value_loss(v(params['goal_rep'], params['value'], s, vg),
-                                          v(fixed['goal_rep'], target['value'], s, vg),
-                                          v(fixed['goal_rep'], target['value'], s1, vg), batch.rewards, batch.masks,
-                                          cfg.discount, cfg.expectile)
-
-        def v_mean(s_, goal):
-            return jnp.mean(v(fixed['goal_rep'], fixed['value'], s_, goal), axis=0)
-
+        l_v, info, v_mean = base.ivl_terms(heads, params, target, batch, cfg.discount, cfg.expectile)
         # LOW: act towards w = s_{min(t+k, end)}
         w = batch.low_goals
         w_rep = phi(params['goal_rep'] if cfg.low_rep_grad else fixed['goal_rep'], s, w)

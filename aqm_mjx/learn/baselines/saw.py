@@ -37,8 +37,7 @@ def make(cfg: SAWConfig, obs_size: int, action_size: int):
     x, g, _ = base.example_inputs(obs_size, action_size, cfg)
     r = jnp.zeros((1, cfg.rep_dim))
 
-    def v(p_rep, p_value, s, goal):
-        return value.apply(p_value, s, rep.apply(p_rep, jnp.concatenate([s, goal], -1)))
+    heads = base.rep_value_heads(rep, value)
 
     def main(p, s, goal):
         """The main policy: ``(mean, log_std)`` of pi(. | s, phi_actor([s; goal input]))."""
@@ -53,16 +52,9 @@ def make(cfg: SAWConfig, obs_size: int, action_size: int):
 
     def loss(params, target, batch, key):
         del key
-        s, s1, vg, act = batch.observations, batch.next_observations, batch.value_goals, batch.actions
+        s, s1, act = batch.observations, batch.next_observations, batch.actions
         fixed = jax.lax.stop_gradient(params)
-        l_v, info = losses.ivl_value_loss(v(params['goal_rep'], params['value'], s, vg),
-                                          v(fixed['goal_rep'], target['value'], s, vg),
-                                          v(fixed['goal_rep'], target['value'], s1, vg), batch.rewards, batch.masks,
-                                          cfg.discount, cfg.expectile)
-
-        def v_mean(s_, goal):
-            return jnp.mean(v(fixed['goal_rep'], fixed['value'], s_, goal), axis=0)
-
+        l_v, info, v_mean = base.ivl_terms(heads, params, target, batch, cfg.discount, cfg.expectile)
         # SUB-POLICY towards w = s_{min(t+k, end)}
         w = batch.low_goals
         mu_s, ls_s = sub_actor.apply(params['sub_actor'], s, base.goal_in(cfg, s, w))
