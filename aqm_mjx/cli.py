@@ -1,4 +1,4 @@
-"""Command line: ``aqm-mjx {run,collect,train,evaluate,methods,rollouts,render,envs}``.
+"""Command line: ``aqm-mjx {run,collect,train,evaluate,compare,methods,rollouts,render,envs}``.
 
 ``run`` is the whole pipeline (collect -> train -> keypoints -> evaluate); the other commands are
 its stages, or tools. This module only parses arguments: the options of the map, agent and protocol
@@ -265,6 +265,17 @@ def cmd_evaluate(a):
     return 0
 
 
+def cmd_compare(a):
+    """Several methods, seeds vmapped, on the same data and episodes: a table and a bar chart."""
+    _enable_compile_cache()
+    from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
+
+    out = a.out or os.path.join('runs', f'compare-{a.env}-{a.style}')
+    compare.compare(a.env, a.methods, a.seeds, out, preset=a.preset, dataset=a.dataset, style=a.style,
+                    collect_episodes=a.collect_episodes, collect_batch=a.collect_batch, overrides=a.set or [],
+                    shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed)
+    return 0
+
 
 def main(argv=None):
     from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
@@ -386,6 +397,33 @@ def main(argv=None):
                    help='multi-host: call jax.distributed.initialize() first (run the same command on every host)')
     _section_options(v)
     v.set_defaults(fn=cmd_evaluate)
+    k = sub.add_parser(
+        'compare', help='several methods x seeds on the same data and episodes: table and bar chart',
+        description='Collect (or --dataset) once, train every method with --seeds seeds (vmapped in one program '
+                    'per method), evaluate every checkpoint on the same episodes, and write OUT/results.json, '
+                    'OUT/table.md and OUT/success.png: per-method mean success with 95%% intervals over seeds '
+                    'and over episodes. Re-running the same command after an interrupt resumes: finished methods '
+                    'are not trained or evaluated again.')
+    k.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
+    from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
+
+    k.add_argument('--methods', nargs='+', default=list(compare.DEFAULT_METHODS), choices=methods.names(),
+                   metavar='METHOD', help=f'registered methods (default: {" ".join(compare.DEFAULT_METHODS)})')
+    k.add_argument('--seeds', type=int, default=2, help='training seeds per method (vmapped)')
+    k.add_argument('--seed', type=int, default=0, help='the first seed: seeds are SEED, SEED+1, ...')
+    k.add_argument('--eval-seed', type=int, default=0, help='PRNGKey of the map and the episodes, shared by all')
+    k.add_argument('--preset', default='cpu', choices=presets, help='every default of each method\'s run')
+    k.add_argument('--set', action='append', metavar='[METHOD:]SECTION.FIELD=VALUE',
+                   help='override a field for every method (--set steps=4000 --set protocol.episodes=10), or '
+                        'for one (--set gcivl:actor_p_trajectory=0.5); repeatable')
+    k.add_argument('--dataset', default=None, help='an OGBench-format .npz instead of collecting')
+    k.add_argument('--style', default='navigate', choices=['navigate', 'stitch', 'explore'],
+                   help='the dataset to collect (taken from the file name with --dataset)')
+    k.add_argument('--collect-episodes', type=int, default=100, help='episodes to collect')
+    k.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
+    k.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
+    k.add_argument('--out', default=None, help='comparison folder (default runs/compare-ENV-STYLE)')
+    k.set_defaults(fn=cmd_compare)
     a = p.parse_args(argv)
     try:
         return a.fn(a)

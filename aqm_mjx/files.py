@@ -1,4 +1,4 @@
-"""Small JSON files written atomically (a config beside a checkpoint, a run's summary, results)."""
+"""Small JSON and text files written atomically (a config beside a checkpoint, a run's summary, results)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,14 @@ def write_json(path: str, obj: dict, makedirs: bool = False) -> None:
     tmp = path + '.tmp'
     with open(tmp, 'w') as f:
         json.dump(obj, f, indent=1, sort_keys=True)
+    os.replace(tmp, path)
+
+
+def write_text(path: str, text: str) -> None:
+    """Atomic text write (a table beside results)."""
+    tmp = path + '.tmp'
+    with open(tmp, 'w') as f:
+        f.write(text)
     os.replace(tmp, path)
 
 

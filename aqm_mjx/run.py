@@ -7,6 +7,8 @@ evaluation in memory; keys come from :func:`aqm_mjx.pipeline.stage_keys` on ever
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import time
 from typing import Optional
@@ -21,7 +23,7 @@ from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, report
 from aqm_mjx.evaluation.protocol import plan_episodes
-from aqm_mjx.evaluation.evaluate import device_mesh, evaluate, put_global
+from aqm_mjx.evaluation.evaluate import device_mesh, evaluate, make_program, put_global
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import PRESETS, RunConfig, make_run, stage_keys, summary
@@ -71,10 +73,25 @@ def preset_for(trained: fit.Trained) -> str:
 
 
 # ------------------------------------------------------------------------------ map + evaluation
+def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig, variants: dict):
+    """The compiled evaluation chunk for ``trained`` from ``programs`` (filled on first use), shared by
+    checkpoints whose method and configs agree up to the seed: parameters are arguments, not
+    constants, so seeds of one method compile once."""
+    if programs is None:
+        return None
+    sig = json.dumps([trained.method, dataclasses.replace(trained.config, seed=0).to_dict(), cfg.to_dict()['map'],
+                      cfg.to_dict()['agent'], cfg.to_dict()['protocol'], sorted(variants)], sort_keys=True)
+    if sig not in programs:
+        steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans).steps
+        programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh())
+    return programs[sig]
+
+
 def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, variants: dict, k_map, k_eval,
-                     out: str, info: dict, log=print):
+                     out: str, info: dict, log=print, programs: Optional[dict] = None):
     """The map from ``observations`` and the protocol for a trained method, then the report in
-    ``out`` (``results.json`` and pictures). Returns ``(Results, report dict)``."""
+    ``out`` (``results.json`` and pictures). ``programs``: a dict that keeps compiled evaluation
+    chunks across calls (several seeds of a method). Returns ``(Results, report dict)``."""
     agent = trained.agent
     if agent.plans:
         graph, m = trimmed_map(agent, observations, cfg.map, k_map)
@@ -89,7 +106,8 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
         f'keypoints at delta {cfg.map.delta} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
         f'{len(cfg.protocol.tasks) or env.num_tasks} tasks x {cfg.protocol.episodes} episodes on '
         f'{jax.device_count()} device(s)')
-    res = evaluate(env, agent, graph, cfg.agent, cfg.protocol, variants, key=k_eval)
+    res = evaluate(env, agent, graph, cfg.agent, cfg.protocol, variants, key=k_eval,
+                   program=_program(programs, trained, env, cfg, variants))
     report.print_summary(res, log)
     info = dict(info, method=trained.method, step=trained.step, train_preset=trained.config.preset,
                 keypoints=m['keypoints'], keypoint_overflow=m['overflow'], map_s=round(m['seconds'], 2),
@@ -165,14 +183,14 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
                          'compare checkpoints of one environment')
     labels = checkpoint_labels(checkpoints, [p[2].method for p in prepared])  # config.json read once, in _prepare
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
-    table, per = {}, {}
+    table, per, programs = {}, {}, {}
     for label, ckpt, (env, variants, c, path) in zip(labels, checkpoints, prepared):
         log(f'== {label} ({ckpt})')
         trained = fit.load(ckpt, log=log)
         data = read_data(path, env)
         info = dict(checkpoint=os.path.abspath(ckpt), dataset=os.path.abspath(path), seed=seed)
         res, rep = map_and_evaluate(trained, env, data['observations'], c, variants, k_map, k_eval,
-                                    os.path.join(out, label), info, log)
+                                    os.path.join(out, label), info, log, programs)
         per[label] = dict(checkpoint=os.path.abspath(ckpt), method=trained.method, step=trained.step,
                           keypoints=rep['keypoints'])
         for agent_name in res.agents:

@@ -31,6 +31,30 @@ def success_bars(summary: dict, variant: str, tasks: Sequence[int], path: Option
     return render.finish(plt, fig, path)  # pylint: disable=protected-access
 
 
+def method_bars(rows: dict, variant: str, path: Optional[str] = None, title: str = ''):
+    """One bar per method: the mean success over seeds, a whisker for the 95% interval over seeds
+    (over pooled episodes where there is one seed) and a dot per seed. ``rows`` as
+    :func:`aqm_mjx.compare.aggregate` returns them."""
+    plt = render.pyplot()
+    names = list(rows)
+    fig, ax = plt.subplots(figsize=(0.9 * len(names) + 2.0, 3.2), dpi=100)
+    for i, n in enumerate(names):
+        r = rows[n][variant]
+        ci = r['seed_ci95'] or r['episodes_ci95']
+        mean = 100 * r['mean']
+        ax.bar(i, mean, 0.7, color=f'C{i % 10}', alpha=0.8)
+        ax.errorbar(i, mean, yerr=[[mean - 100 * ci[0]], [100 * ci[1] - mean]], color='k', capsize=4, lw=1)
+        seeds = 100 * np.asarray(r['seed_means'])
+        ax.plot(np.full(len(seeds), i) + np.linspace(-0.15, 0.15, len(seeds)), seeds, 'o', ms=3, color='k')
+        ax.text(i, min(100 * ci[1], 100) + 2, f'{mean:.0f}', ha='center', fontsize=8)
+    ax.set_xticks(np.arange(len(names)), names, rotation=30 if len(names) > 6 else 0, ha='right' if len(names) > 6
+                  else 'center')
+    ax.set_ylim(0, 112)
+    ax.set_ylabel('success (%)')
+    ax.set_title(title or f'success ({variant})', fontsize=9)
+    return render.finish(plt, fig, path)  # pylint: disable=protected-access
+
+
 def heatmap(rows: Sequence[str], cols: Sequence[str], values: np.ndarray, path: Optional[str] = None,
             title: str = '', xlabel: str = 'evaluation layout', ylabel: str = 'trained on / agent'):
     """Success (%) as a heatmap, rows x columns (the paper's Figure 3 layout)."""

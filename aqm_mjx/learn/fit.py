@@ -203,6 +203,105 @@ def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, re
 PROGRESS_KEYS = ('qrl/d_pos_mean', 'qrl/d_goal_mean', 'qrl/lambda', 'policy/main_loss')  # shown on the bar
 
 
+def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs: list[str], keys: jax.Array,
+                dataset_path: Optional[str] = None, progress: bool = True, log=print) -> list[Trained]:
+    """Train ``S`` seeds of one method as one vmapped program, each into its own run folder.
+
+    Every folder ends up as :func:`train` writes it (``config.json`` with its seed, its own
+    ``metrics.jsonl`` and checkpoints), so :func:`load`, ``aqm-mjx evaluate`` and ``--resume`` see
+    ordinary runs. The seeds are stacked on a leading axis and ``chunk_step`` runs under
+    ``jax.vmap``; the numbers are those of ``S`` separate runs up to float reassociation.
+
+    Resume: folders complete at ``cfgs[0].steps`` are loaded, not trained. Otherwise training
+    continues from the newest step that every folder has a checkpoint of (from the start when
+    there is none); a checkpoint a folder already holds is not written again (the run is
+    deterministic, so it is the same state), and metric lines past the restart step are dropped.
+
+    Args:
+        cfgs: one config per seed, equal except ``seed``.
+        outs: ``S`` run folders.
+        keys: ``[S, 2]`` initialisation keys (ignored for folders restored from a checkpoint).
+    Returns:
+        one :class:`Trained` per seed.
+    """
+    method = methods.get(method) if isinstance(method, str) else method
+    n = len(outs)
+    if len(cfgs) != n or keys.shape[0] != n:
+        raise ValueError(f'{n} run folders, {len(cfgs)} configs and {keys.shape[0]} keys: give one of each per seed')
+    if len(set(map(os.path.normpath, outs))) != n:
+        raise ValueError(f'the run folders repeat: {outs}')
+    if any(dataclasses.replace(c, seed=0) != dataclasses.replace(cfgs[0], seed=0) for c in cfgs):
+        raise ValueError('train_seeds: the configs differ in more than their seed; train them separately')
+    cfg = cfgs[0]
+    ds = ds_io.to_device(data)
+    obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
+    done = [checkpoint_steps(o) for o in outs]
+    for o, d in zip(outs, done):
+        if d:
+            _, saved, meta = read_meta(o)
+            if meta.get('method') != method.name or (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
+                raise ValueError(f'{o} holds a {meta.get("method")} run on {meta["obs_size"]}-d observations; '
+                                 f'this is {method.name} on {obs_size}-d: choose another folder')
+            if dataclasses.replace(saved, seed=0) != dataclasses.replace(cfg, seed=0):
+                raise ValueError(f'{o} was trained with another config than this one; choose another folder')
+    if all(d and max(d) >= cfg.steps for d in done):
+        log(f'{method.name}: {n} seed(s) complete at step {cfg.steps}, not trained again')
+        return [load(o, log=log) for o in outs]
+    common = sorted(set.intersection(*map(set, done)) if all(done) else set())
+    start = common[-1] if common else 0
+    learner = method.make(cfg, obs_size, action_size)
+    states = [learner.init(k) for k in keys]
+    for o in outs:
+        os.makedirs(o, exist_ok=True)
+    savers = [ckpt.Checkpointer(o, keep=cfg.keep) for o in outs]
+    if start:
+        states = [s.restore(st, step=start, log=log)[1] for s, st in zip(savers, states)]
+        log(f'{method.name}: resuming {n} seed(s) at step {start}')
+    metas = [_meta(method.name, c, obs_size, action_size, dataset_path) for c in cfgs]
+    for o, m in zip(outs, metas):
+        files.write_json(os.path.join(o, 'config.json'), m, makedirs=True)
+        _trim_metrics(os.path.join(o, 'metrics.jsonl'), start)
+    state = jax.tree.map(lambda *x: jnp.stack(x), *states)
+    chunk = jax.jit(jax.vmap(chunk_step(learner.update, cfg.updates_per_call), in_axes=(0, None)),
+                    donate_argnums=0)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
+
+        bar = tqdm(total=cfg.steps, initial=start, desc=f'train {method.name} {cfg.preset} x{n} seeds', unit='upd',
+                   smoothing=0.1)
+    t_last, first, step = time.perf_counter(), True, start
+    metric_files = [open(os.path.join(o, 'metrics.jsonl'), 'a') for o in outs]  # pylint: disable=consider-using-with
+    try:
+        while step < cfg.steps:
+            state, m = chunk(state, ds)
+            m = jax.device_get(m)
+            step += cfg.updates_per_call
+            now = time.perf_counter()
+            timing = {'time/updates_per_s': n * cfg.updates_per_call / (now - t_last), 'time/includes_compile': first}
+            t_last, first = now, False
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                for i, mf in enumerate(metric_files):
+                    line = {k: float(v[i]) for k, v in m.items()}
+                    mf.write(json.dumps({'step': step, 'preset': cfg.preset, **line, **timing}) + '\n')
+                    mf.flush()
+            if bar is not None:
+                bar.update(cfg.updates_per_call)
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                for i, (saver, d) in enumerate(zip(savers, done)):
+                    if step not in d:
+                        saver.save(step, jax.tree.map(lambda x, i=i: x[i], state), metas[i])
+    finally:
+        for mf in metric_files:
+            mf.close()
+        for saver in savers:
+            saver.close()
+        if bar is not None:
+            bar.close()
+    return [Trained(method.name, c, learner, jax.tree.map(lambda x, i=i: x[i], state), step, meta)
+            for i, (c, meta) in enumerate(zip(cfgs, metas))]
+
+
 def load(out: str, step: Optional[int] = None, log=print) -> Trained:
     """A run folder for evaluation: its ``config.json`` and the newest readable checkpoint."""
     method, cfg, meta = read_meta(out)

@@ -1,0 +1,233 @@
+"""``aqm-mjx compare``: several methods on the same data and the same episodes, with seeds.
+
+    aqm-mjx compare --env antmaze-medium --methods aqm gcbc gcivl gciql qrl crl hiql saw --seeds 2
+
+One folder holds the whole comparison::
+
+    OUT/compare.json                    what was asked (checked on every re-run)
+    OUT/data/ENV-STYLE.npz              collected once (or --dataset)
+    OUT/train/METHOD/seed_S/            an ordinary run folder per method and seed
+    OUT/eval/METHOD/                    `aqm-mjx evaluate` of that method's seeds
+    OUT/results.json, table.md, success.png   the comparison
+
+Each method's seeds train as one vmapped program (:func:`aqm_mjx.learn.fit.train_seeds`); a seed's
+run key is ``PRNGKey(seed)`` split by :func:`~aqm_mjx.pipeline.stage_keys`, as in ``aqm-mjx run
+--seed S``. Every checkpoint is evaluated with the episode keys of ``PRNGKey(eval_seed)``, so all
+methods meet the same tasks, layouts and initial noise. A re-run after an interrupt skips methods
+that are trained and evaluated, resumes one that was training, and redoes only the tables.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from typing import Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+
+from aqm_mjx import envs, files
+from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.evaluation import plots, stats
+from aqm_mjx.evaluation.protocol import plan_episodes
+from aqm_mjx.learn import fit, methods
+from aqm_mjx.pipeline import RunConfig, stage_keys
+from aqm_mjx import run
+
+DEFAULT_METHODS = ('aqm', 'gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw')
+
+
+def method_configs(env_name: str, names: Sequence[str], preset: str, overrides: Sequence[str] = (),
+                   explore: bool = False) -> dict[str, RunConfig]:
+    """``{method: RunConfig}`` for a comparison, every override checked before any work.
+
+    ``overrides`` are ``section.field=value`` pairs (``field=value`` where the field is unique), given
+    to every method; ``METHOD:section.field=value`` goes to that method alone (OGBench's stitch
+    settings, for instance: ``gcivl:actor_p_trajectory=0.5``). A shared override that a method's
+    config lacks is an error naming the method; scope it instead.
+    """
+    names = list(names)
+    if not names:
+        raise ValueError('give at least one method')
+    for n in names:
+        methods.get(n)
+    if len(set(names)) != len(names):
+        raise ValueError(f'methods repeat: {names}')
+    shared, scoped = [], {n: [] for n in names}
+    for pair in overrides:
+        head = pair.split('=', 1)[0]
+        if ':' in head:
+            m, rest = pair.split(':', 1)
+            if m not in scoped:
+                raise ValueError(f'override {pair!r} is for method {m!r}, which is not compared '
+                                 f'(methods: {", ".join(names)})')
+            scoped[m].append(rest)
+        else:
+            shared.append(pair)
+    out = {}
+    for n in names:
+        # the methods alone by default (AQM's ablations triple its evaluation): protocol.ablations=... adds them
+        cfg = RunConfig.preset(preset, method=n, env=env_name).with_overrides(['protocol.ablations='])
+        if explore and 'policy_goals' in {f.name for f in dataclasses.fields(cfg.train)}:
+            cfg = cfg.with_overrides(['train.policy_goals=random'])  # AQM on explore data: uniform random goals
+        try:
+            cfg = cfg.with_overrides(shared)
+        except ValueError as e:
+            raise ValueError(f'{n}: {e}; give an override one method has as {n}:FIELD=VALUE') from None
+        out[n] = cfg.with_overrides(scoped[n])
+    return out
+
+
+def _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset) -> dict:
+    return dict(env=env_name, style=style, preset=preset, seeds=[first_seed + i for i in range(seeds)],
+                eval_seed=eval_seed, shift=shift, overrides=list(overrides),
+                dataset=os.path.abspath(dataset) if dataset else None)
+
+
+def _check_spec(out: str, spec: dict, names: list[str]) -> list[str]:
+    """The methods of ``OUT/compare.json`` and these, after checking that the rest of the request
+    is the same (a folder holds one comparison)."""
+    path = os.path.join(out, 'compare.json')
+    if not os.path.exists(path):
+        return names
+    saved = files.read_json(path, 'a comparison folder written by aqm-mjx compare')
+    diff = [k for k in spec if saved.get(k) != spec[k]]
+    if diff:
+        raise ValueError(f'{out} holds a comparison with other settings ('
+                         + '; '.join(f'{k}: {saved.get(k)!r} there, {spec[k]!r} now' for k in diff)
+                         + '); choose another --out')
+    return list(dict.fromkeys(saved.get('methods', []) + names))
+
+
+def seed_folders(out: str, method: str, seeds: Sequence[int]) -> list[str]:
+    return [os.path.join(out, 'train', method, f'seed_{s}') for s in seeds]
+
+
+def _evaluated(ev: str, folders: list[str], steps: int) -> bool:
+    """Whether ``ev/results.json`` covers these run folders at ``steps``."""
+    path = os.path.join(ev, 'results.json')
+    if not os.path.exists(path):
+        return False
+    got = files.read_json(path, 'an evaluation written by aqm-mjx evaluate').get('checkpoints', {})
+    have = {os.path.normpath(c['checkpoint']): c['step'] for c in got.values()}
+    return all(have.get(os.path.normpath(os.path.abspath(f))) == steps for f in folders)
+
+
+def aggregate(per_method: dict[str, dict], seeds: Sequence[int]) -> dict:
+    """The comparison's rows from each method's ``evaluate_checkpoints`` table.
+
+    ``per_method[m]`` is that table (``summary: {LABEL/agent: {layout: {task_T, mean}}}``, labels
+    ``m:seed_S``). A row is a method (its own agent: AQM's planner or a flat controller), or
+    ``method/agent`` for an ablation. Per layout it holds the per-task means over seeds, the
+    per-seed means, their mean, the 95% t interval over seeds and the Wilson interval of the pooled
+    episodes (seeds x tasks x episodes)."""
+    rows = {}
+    for m, res in per_method.items():
+        episodes, tasks = int(res['episodes']), list(res['tasks'])
+        labels = [f'{m}:seed_{s}' for s in seeds] if len(seeds) > 1 else [m]
+        agents = []
+        for key in res['summary']:
+            label, agent = key.split('/', 1)
+            if label == labels[0]:
+                agents.append(agent)
+        for k, agent in enumerate(agents):
+            name = m if k == 0 else f'{m}/{agent}'
+            row = {}
+            for v in res['variants']:
+                cells = [res['summary'][f'{lab}/{agent}'][v] for lab in labels]
+                seed_means = [c['mean'] for c in cells]
+                n = len(cells) * len(tasks) * episodes
+                wins = round(sum(seed_means) * len(tasks) * episodes)
+                mean = sum(seed_means) / len(seed_means)
+                lo, hi = stats.seed_interval(seed_means)
+                row[v] = dict(mean=mean, seed_means=seed_means, seed_ci95=None if math.isnan(lo) else [lo, hi],
+                              episodes_ci95=list(stats.wilson(wins, n)), episodes=n,
+                              **{f'task_{t}': sum(c[f'task_{t}'] for c in cells) / len(cells) for t in tasks})
+            rows[name] = row
+    return rows
+
+
+def _pct(x: float) -> str:
+    return f'{100 * x:.0f}'
+
+
+def _span(ci) -> str:
+    return '-' if ci is None else f'{_pct(ci[0])}-{_pct(ci[1])}'
+
+
+def markdown(rows: dict, variant: str, tasks: Sequence[int], seeds: Sequence[int], episodes: int) -> str:
+    """The comparison as a Markdown table (one layout)."""
+    head = ('| method | ' + ' | '.join(f'task {t}' for t in tasks) + ' | mean | 95% over seeds | '
+            '95% over episodes | per seed |')
+    lines = [head, '|' + '---|' * (len(tasks) + 5)]
+    for name, row in rows.items():
+        r = row[variant]
+        lines.append(f'| {name} | ' + ' | '.join(_pct(r[f'task_{t}']) for t in tasks)
+                     + f' | **{_pct(r["mean"])}** | {_span(r["seed_ci95"])} | {_span(r["episodes_ci95"])} | '
+                     + ', '.join(_pct(x) for x in r['seed_means']) + ' |')
+    lines.append(f'\nSuccess (%) on layout {variant}; seeds {", ".join(map(str, seeds))}; {len(tasks)} tasks x '
+                 f'{episodes} episodes per seed; the same episodes for every method.')
+    return '\n'.join(lines) + '\n'
+
+
+def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, preset: str = 'cpu',
+            dataset: Optional[str] = None, style: str = 'navigate', collect_episodes: int = 100,
+            collect_batch: int = 55, overrides: Sequence[str] = (), shift: str = 'base', first_seed: int = 0,
+            eval_seed: int = 0, log=print) -> dict:
+    """``aqm-mjx compare``: data -> each method's seeds trained (vmapped) -> one evaluation on the
+    same episodes -> ``OUT/results.json``, ``OUT/table.md`` and ``OUT/success.png``.
+
+    Everything (methods, overrides, layouts, tasks, the folder's earlier request) is checked before
+    data are collected. Returns the comparison written to ``results.json``.
+    """
+    envs.parse_name(env_name)
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise ValueError(f'--seeds must be an integer >= 1; got {seeds!r}')
+    if dataset is not None:
+        if not os.path.exists(dataset):
+            raise FileNotFoundError(f'dataset {dataset!r} not found')
+        inferred, inferred_style = ds_io.infer_env(dataset) if dataset.endswith('.npz') else (None, None)
+        if inferred not in (None, env_name):
+            raise ValueError(f'{dataset} is named for {inferred}, not {env_name}; pass the matching --env')
+        style = inferred_style or style
+    names = list(method_names)
+    cfgs = method_configs(env_name, names, preset, overrides, explore=style == 'explore')
+    env = envs.make(env_name)
+    variants = run.variants_for(env.maze, shift)
+    for c in cfgs.values():
+        plan_episodes(env, c.protocol, c.agent.kappa, variants)  # bad task ids fail before any work
+    seed_ids = [first_seed + i for i in range(seeds)]
+    spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
+    all_names = _check_spec(out, spec, names)
+    files.write_json(os.path.join(out, 'compare.json'), dict(spec, methods=all_names), makedirs=True)
+
+    path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style)
+    data = run.read_data(path, env)
+    log(f'[train] {len(names)} method(s) x {seeds} seed(s) ({preset} preset), seeds vmapped per method')
+    for n, c in cfgs.items():
+        keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seed_ids])
+        fit.train_seeds(n, [dataclasses.replace(c.train, seed=s) for s in seed_ids], data,
+                        seed_folders(out, n, seed_ids), keys, dataset_path=os.path.abspath(path), log=log)
+    log(f'[evaluate] every checkpoint on the episodes of PRNGKey({eval_seed})')
+    per_method = {}
+    for n, c in cfgs.items():
+        folders, ev = seed_folders(out, n, seed_ids), os.path.join(out, 'eval', n)
+        if _evaluated(ev, folders, c.train.steps):
+            log(f'{n}: evaluated already ({ev}/results.json)')
+        else:
+            run.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
+        per_method[n] = files.read_json(os.path.join(ev, 'results.json'), 'an evaluation written by aqm-mjx evaluate')
+    first = per_method[names[0]]
+    rows = aggregate(per_method, seed_ids)
+    variant, tasks, episodes = first['variants'][0], first['tasks'], int(first['episodes'])
+    result = dict(spec, methods=names, tasks=tasks, episodes=episodes, variants=first['variants'], rows=rows,
+                  configs={n: c.to_dict() for n, c in cfgs.items()})
+    files.write_json(os.path.join(out, 'results.json'), result)
+    table = markdown(rows, variant, tasks, seed_ids, episodes)
+    files.write_text(os.path.join(out, 'table.md'), table)
+    plots.method_bars(rows, variant, os.path.join(out, 'success.png'),
+                      title=f'{env_name} {style} ({variant}), {preset} preset: mean of {seeds} seed(s), 95% interval')
+    log(table)
+    log(f'wrote {out}/results.json, {out}/table.md and {out}/success.png')
+    return result

@@ -1,0 +1,53 @@
+"""95% intervals for success rates: over seeds (Student's t on the per-seed means) and over
+episodes (Wilson's score interval on the pooled successes). Plain NumPy; no SciPy at run time.
+
+    lo, hi = seed_interval([0.8, 0.9])           # t with 1 degree of freedom: wide, as it should be
+    lo, hi = wilson(successes=90, n=100)
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+# Student's t, two-sided 95% (the 0.975 quantile) for 1..30 degrees of freedom; beyond, the Cornish-Fisher
+# expansion around the normal quantile. tests/test_compare.py checks both against scipy.stats.t.ppf.
+T975 = (12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060, 2.2622, 2.2281, 2.2010, 2.1788, 2.1604,
+        2.1448, 2.1314, 2.1199, 2.1098, 2.1009, 2.0930, 2.0860, 2.0796, 2.0739, 2.0687, 2.0639, 2.0595, 2.0555,
+        2.0518, 2.0484, 2.0452, 2.0423)
+Z975 = 1.959964
+
+
+def t975(df: int) -> float:
+    """The 0.975 quantile of Student's t with ``df`` >= 1 degrees of freedom."""
+    if df < 1:
+        raise ValueError(f'a t interval needs at least 1 degree of freedom (2 values); got {df}')
+    if df <= len(T975):
+        return T975[df - 1]
+    z = Z975
+    return z + (z ** 3 + z) / (4 * df) + (5 * z ** 5 + 16 * z ** 3 + 3 * z) / (96 * df ** 2)
+
+
+def seed_interval(values: Sequence[float]) -> tuple[float, float]:
+    """95% t interval of the mean of ``values`` (one per seed), clipped to [0, 1]. With one value
+    there is no spread to estimate: ``(nan, nan)``."""
+    v = [float(x) for x in values]
+    if not v or any(math.isnan(x) for x in v):
+        raise ValueError(f'seed_interval needs finite values; got {values!r}')
+    if len(v) < 2:
+        return math.nan, math.nan
+    mean = sum(v) / len(v)
+    sd = math.sqrt(sum((x - mean) ** 2 for x in v) / (len(v) - 1))
+    half = t975(len(v) - 1) * sd / math.sqrt(len(v))
+    return max(0.0, mean - half), min(1.0, mean + half)
+
+
+def wilson(successes: float, n: int, z: float = Z975) -> tuple[float, float]:
+    """Wilson's 95% score interval of a binomial rate with ``successes`` out of ``n`` trials."""
+    if n < 1 or not 0 <= successes <= n:
+        raise ValueError(f'wilson: need 0 <= successes <= n and n >= 1; got {successes} of {n}')
+    p = successes / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, centre - half), min(1.0, centre + half)

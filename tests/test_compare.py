@@ -1,0 +1,169 @@
+"""``aqm-mjx compare``: seeds trained as one vmapped program into ordinary run folders, resume
+without redoing finished methods, intervals a person can recompute, and requests checked first."""
+
+import json
+import math
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from aqm_mjx import cli, compare
+from aqm_mjx.data import synthetic
+from aqm_mjx.evaluation import stats
+from aqm_mjx.learn import fit, methods
+from aqm_mjx.pipeline import stage_keys
+
+QUIET = dict(log=lambda *_: None)
+
+
+def test_t_quantiles_match_scipy_and_intervals_are_recomputable():
+    for df in list(range(1, 60)) + [100, 1000, 10 ** 6]:
+        assert stats.t975(df) == pytest.approx(sps.t.ppf(0.975, df), rel=1e-4)
+    with pytest.raises(ValueError, match='degree of freedom'):
+        stats.t975(0)
+    # two seeds at 0.8 and 0.9: mean 0.85, sd 0.0707, half-width 12.706 * 0.0707 / sqrt(2) = 0.635
+    lo, hi = stats.seed_interval([0.8, 0.9])
+    assert (lo, hi) == (pytest.approx(0.85 - 0.6353, abs=1e-3), 1.0)
+    lo, hi = stats.seed_interval([0.5, 0.6, 0.7])
+    assert hi - 0.6 == pytest.approx(sps.t.ppf(0.975, 2) * 0.1 / math.sqrt(3), rel=1e-4)
+    assert all(math.isnan(x) for x in stats.seed_interval([0.5]))
+    # Wilson's interval, recomputed from its formula: 45 of 50
+    z, n, p = 1.959964, 50, 0.9
+    c = (p + z * z / (2 * n)) / (1 + z * z / n)
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    assert stats.wilson(45, 50) == (pytest.approx(c - h), pytest.approx(c + h))
+    assert stats.wilson(0, 10)[0] == 0.0 and stats.wilson(10, 10)[1] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match='successes'):
+        stats.wilson(11, 10)
+
+
+def test_aggregate_rows_from_per_seed_tables():
+    def table(m, rates, agents=('flat',)):
+        return dict(episodes=10, tasks=[1, 2], variants=['base'],
+                    summary={f'{m}:seed_{s}/{a}': {'base': {'task_1': r[0], 'task_2': r[1], 'mean': (r[0] + r[1]) / 2}}
+                             for s, r in enumerate(rates) for a in agents})
+
+    rows = compare.aggregate({'gcbc': table('gcbc', [(0.6, 0.8), (1.0, 0.8)]),
+                              'aqm': table('aqm', [(1.0, 1.0), (0.8, 1.0)], agents=('aqm', 'no-pruning'))}, [0, 1])
+    assert list(rows) == ['gcbc', 'aqm', 'aqm/no-pruning']
+    r = rows['gcbc']['base']
+    assert r['seed_means'] == [pytest.approx(0.7), pytest.approx(0.9)]
+    assert r['mean'] == pytest.approx(0.8) and r['task_1'] == pytest.approx(0.8) and r['task_2'] == pytest.approx(0.8)
+    assert r['episodes'] == 40
+    assert r['episodes_ci95'] == [pytest.approx(x) for x in stats.wilson(32, 40)]
+    assert r['seed_ci95'] == [pytest.approx(x) for x in stats.seed_interval([0.7, 0.9])]
+    md = compare.markdown(rows, 'base', [1, 2], [0, 1], 10)
+    assert '| gcbc | 80 | 80 | **80** |' in md and '| aqm/no-pruning |' in md
+
+
+def test_requests_are_checked_before_any_work(tmp_path):
+    with pytest.raises(ValueError, match="unknown method 'nope'"):
+        compare.method_configs('pointmaze-medium', ['gcbc', 'nope'], 'ci')
+    with pytest.raises(ValueError, match='repeat'):
+        compare.method_configs('pointmaze-medium', ['gcbc', 'gcbc'], 'ci')
+    with pytest.raises(ValueError, match="for method 'hiql', which is not compared"):
+        compare.method_configs('pointmaze-medium', ['gcbc'], 'ci', ['hiql:steps=100'])
+    # a shared field one method lacks names the method and says how to scope it
+    with pytest.raises(ValueError, match='gcbc: .*lr_quasimetric.*gcbc:FIELD=VALUE'):
+        compare.method_configs('pointmaze-medium', ['aqm', 'gcbc'], 'ci', ['lr_quasimetric=1e-4'])
+    cfgs = compare.method_configs('pointmaze-medium', ['gcivl', 'gcbc'], 'ci',
+                                  ['steps=100', 'gcivl:actor_p_trajectory=0.5', 'gcivl:actor_p_random=0.5'])
+    assert cfgs['gcivl'].train.steps == cfgs['gcbc'].train.steps == 100
+    assert cfgs['gcivl'].train.actor_p_random == 0.5 and cfgs['gcbc'].train.actor_p_random == 0.0
+    assert cfgs['gcbc'].protocol.ablations == ()  # methods alone unless ablations are asked for
+    # the CLI reports them as errors (exit 2) before collecting anything
+    out = str(tmp_path / 'c')
+    assert cli.main(['compare', '--env', 'pointmaze-medium', '--methods', 'gcbc', '--set', 'gcivl:steps=1',
+                     '--out', out]) == 2
+    assert cli.main(['compare', '--env', 'pointmaze-medium', '--methods', 'gcbc', '--seeds', '0', '--out', out]) == 2
+    assert cli.main(['compare', '--env', 'pointmaze-medium', '--methods', 'gcbc', '--set', 'protocol.tasks=9',
+                     '--out', out]) == 2
+    assert not os.path.exists(os.path.join(out, 'data'))
+
+
+def _data(tmp_path):
+    data = synthetic.point_walks(n_traj=60, t_len=60, seed=0)
+    path = str(tmp_path / 'pointmaze-medium-navigate.npz')
+    np.savez(path, **data)
+    return data, path
+
+
+def test_vmapped_seeds_equal_separate_runs_and_resume_after_an_interrupt(tmp_path):
+    data, path = _data(tmp_path)
+    method = methods.get('gcivl')
+    cfg = method.preset('ci', env='pointmaze-medium', steps=200, checkpoint_every=100, log_every=50)
+    seeds = [3, 4]
+    keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seeds])
+    cfgs = [cfg.__class__(**{**cfg.to_dict(), 'seed': s}) for s in seeds]
+    outs = [str(tmp_path / 'v' / f'seed_{s}') for s in seeds]
+    trained = fit.train_seeds(method, cfgs, data, outs, keys, progress=False, **QUIET)
+    for s, o, t in zip(seeds, outs, trained):
+        alone = fit.train(method, cfgs[0], data, str(tmp_path / f'alone_{s}'), key=stage_keys(jax.random.PRNGKey(s))[0],
+                          progress=False, **QUIET)
+        loaded = fit.load(o, **QUIET)
+        assert loaded.step == 200 and loaded.config.seed == s
+        for a, b, c in zip(jax.tree.leaves(alone.params), jax.tree.leaves(t.params), jax.tree.leaves(loaded.params)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-4, atol=2e-5)
+            assert np.asarray(b).tobytes() == np.asarray(c).tobytes()
+        steps = [json.loads(ln)['step'] for ln in open(os.path.join(o, 'metrics.jsonl'))]
+        assert steps == [50, 100, 150, 200]
+    # an interrupt after step 100 of seed 3 and before seed 4's checkpoint at 200: resume from the common 100
+    cut = [str(tmp_path / 'cut' / f'seed_{s}') for s in seeds]
+    fit.train_seeds(method, [c.__class__(**{**c.to_dict(), 'steps': 100}) for c in cfgs], data, cut, keys,
+                    progress=False, **QUIET)
+    for o in cut:  # the shorter run's config records steps 100; the resumed request is the full one
+        meta = json.load(open(os.path.join(o, 'config.json')))
+        meta['config']['steps'] = 200
+        json.dump(meta, open(os.path.join(o, 'config.json'), 'w'))
+    logs = []
+    resumed = fit.train_seeds(method, cfgs, data, cut, keys, progress=False, log=logs.append)
+    assert any('resuming 2 seed(s) at step 100' in ln for ln in logs)
+    for a, b in zip(trained, resumed):
+        for x, y in zip(jax.tree.leaves(a.state), jax.tree.leaves(b.state)):
+            assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+    for o in cut:
+        steps = [json.loads(ln)['step'] for ln in open(os.path.join(o, 'metrics.jsonl'))]
+        assert steps == [50, 100, 150, 200]  # no step twice
+    logs = []
+    fit.train_seeds(method, cfgs, data, cut, keys, progress=False, log=logs.append)
+    assert logs == ['gcivl: 2 seed(s) complete at step 200, not trained again']
+    with pytest.raises(ValueError, match='another config'):
+        fit.train_seeds(method, [c.__class__(**{**c.to_dict(), 'batch_size': 8}) for c in cfgs], data, cut, keys,
+                        progress=False, **QUIET)
+    with pytest.raises(ValueError, match='differ in more than their seed'):
+        fit.train_seeds(method, [cfgs[0], cfgs[1].__class__(**{**cfgs[1].to_dict(), 'steps': 100})], data,
+                        [str(tmp_path / 'x0'), str(tmp_path / 'x1')], keys, progress=False, **QUIET)
+
+
+def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(tmp_path):
+    _, path = _data(tmp_path)
+    out = str(tmp_path / 'cmp')
+    over = ['steps=100', 'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20']
+    first = compare.compare('pointmaze-medium', ['gcbc'], 2, out, preset='ci', dataset=path, overrides=over, **QUIET)
+    row = first['rows']['gcbc']['base']
+    assert row['episodes'] == 4 and len(row['seed_means']) == 2
+    res = json.load(open(os.path.join(out, 'eval', 'gcbc', 'results.json')))
+    assert set(res['checkpoints']) == {'gcbc:seed_0', 'gcbc:seed_1'}
+    assert row['seed_means'] == [res['summary'][f'gcbc:seed_{s}/flat']['base']['mean'] for s in (0, 1)]
+    for s in (0, 1):
+        assert fit.read_meta(os.path.join(out, 'train', 'gcbc', f'seed_{s}'))[1].seed == s
+    stamp = {p: os.path.getmtime(p) for p in (os.path.join(out, 'eval', 'gcbc', 'results.json'),
+                                              os.path.join(out, 'train', 'gcbc', 'seed_1', 'metrics.jsonl'))}
+    # adding a method to the same folder trains and evaluates only the new one
+    logs = []
+    second = compare.compare('pointmaze-medium', ['gcbc', 'gcivl'], 2, out, preset='ci', dataset=path, overrides=over,
+                             log=logs.append)
+    assert 'gcbc: 2 seed(s) complete at step 100, not trained again' in logs
+    assert any(ln.startswith('gcbc: evaluated already') for ln in logs)
+    assert all(os.path.getmtime(p) == t for p, t in stamp.items())
+    assert list(second['rows']) == ['gcbc', 'gcivl'] and second['rows']['gcbc'] == first['rows']['gcbc']
+    assert json.load(open(os.path.join(out, 'compare.json')))['methods'] == ['gcbc', 'gcivl']
+    assert os.path.getsize(os.path.join(out, 'success.png')) > 5000
+    assert '| gcivl |' in open(os.path.join(out, 'table.md')).read()
+    # the folder holds one comparison: other settings are refused, naming what differs
+    with pytest.raises(ValueError, match='overrides'):
+        compare.compare('pointmaze-medium', ['gcbc'], 2, out, preset='ci', dataset=path, overrides=over[:1], **QUIET)
