@@ -376,3 +376,22 @@ def test_length_normalize_scales_to_sqrt_dim_and_keeps_zero_finite():
     assert np.all(y[1] == 0)
     g = jax.grad(lambda v: networks.length_normalize(v).sum())(x)
     assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_parity_benchmark_skips_and_says_why_without_a_reference_copy(tmp_path, capsys, monkeypatch):
+    import importlib.util  # pylint: disable=import-outside-toplevel
+
+    spec = importlib.util.spec_from_file_location('bench_parity', os.path.join(os.path.dirname(__file__), '..',
+                                                                               'benchmarks', 'bench_parity.py'))
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    monkeypatch.delenv('AQM_OGBENCH_REF', raising=False)
+    assert bench.main([]) == 0
+    assert 'skipped: no copy of seohongpark/ogbench given' in capsys.readouterr().out
+    assert bench.main(['--reference', str(tmp_path)]) == 0
+    assert 'holds neither impls/agents nor a git repository' in capsys.readouterr().out
+    # the stand-in Gaussian is the diagonal normal density
+    g = bench._gaussian_standin().MultivariateNormalDiag(jnp.array([0.5, -1.0]), jnp.array([1.0, 2.0]))
+    x = jnp.array([1.0, 0.0])
+    want = stats.norm.logpdf(1.0, 0.5, 1.0) + stats.norm.logpdf(0.0, -1.0, 2.0)
+    assert float(g.log_prob(x)) == pytest.approx(want, rel=1e-6)

@@ -30,6 +30,8 @@ class Learner(NamedTuple):
         modules: the method's flax modules by name (for tools that inspect them).
         loss: ``(params, target, batch, key) -> (loss, info)``, the summed loss ``update`` differentiates
             (the baselines; tests and the parity benchmark evaluate it on a batch of their own).
+        step: ``(state, batch, key) -> (state, metrics)``, one update on a given batch, which
+            ``update`` runs on the batch it samples (the baselines; the parity benchmark).
     """
 
     config: Any
@@ -39,6 +41,7 @@ class Learner(NamedTuple):
     agent: Callable
     modules: dict
     loss: Optional[Callable] = None
+    step: Optional[Callable] = None
 
 
 @dataclasses.dataclass(frozen=True)

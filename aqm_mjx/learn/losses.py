@@ -37,8 +37,9 @@ def ivl_value_loss(v: jax.Array, v_target: jax.Array, next_v_target: jax.Array, 
     q_heads = rewards + discount * masks * next_v_target
     adv = rewards + discount * masks * jnp.min(next_v_target, axis=0) - jnp.mean(v_target, axis=0)
     loss = jnp.sum(jnp.mean(expectile_loss(adv, q_heads - v, expectile), axis=-1))
-    return loss, {f'{prefix}/loss': loss, f'{prefix}/v_mean': jnp.mean(v), f'{prefix}/v_min': jnp.min(v),
-                  f'{prefix}/v_max': jnp.max(v), f'{prefix}/adv_mean': jnp.mean(adv)}
+    v_bar = jnp.mean(v, axis=0)  # statistics of the heads' mean, as OGBench logs them
+    return loss, {f'{prefix}/loss': loss, f'{prefix}/v_mean': jnp.mean(v_bar), f'{prefix}/v_min': jnp.min(v_bar),
+                  f'{prefix}/v_max': jnp.max(v_bar), f'{prefix}/adv_mean': jnp.mean(adv)}
 
 
 def iql_value_loss(q_target: jax.Array, v: jax.Array, expectile: float):

@@ -134,14 +134,18 @@ def make_learner(cfg: BaselineConfig, init_params: Callable, targets: tuple, los
                      target={n: jax.tree.map(jnp.copy, params[n]) for n in targets},  # own buffers (donation)
                      opt=tx.init(params))
 
-    def update(state: State, ds: Dataset):
-        key, k_batch, k_loss = jax.random.split(state.key, 3)
-        batch = goals.sample_gc(ds, k_batch, cfg.batch_size, sampling)
+    def step(state: State, batch: goals.GCBatch, k_loss: jax.Array):
+        """One update on a given batch (the state's key is left as it is)."""
         (_, info), grads = jax.value_and_grad(loss, has_aux=True)(state.params, state.target, batch, k_loss)
         updates, opt = tx.update(grads, state.opt, state.params)
         params = optax.apply_updates(state.params, updates)
         target = {n: polyak(state.params[n], state.target[n], cfg.tau) for n in targets}
-        return State(step=state.step + 1, key=key, params=params, target=target, opt=opt), info
+        return State(step=state.step + 1, key=state.key, params=params, target=target, opt=opt), info
+
+    def update(state: State, ds: Dataset):
+        key, k_batch, k_loss = jax.random.split(state.key, 3)
+        state, info = step(state, goals.sample_gc(ds, k_batch, cfg.batch_size, sampling), k_loss)
+        return state.replace(key=key), info
 
     def params_of(state: State):
         return state.params
@@ -149,7 +153,8 @@ def make_learner(cfg: BaselineConfig, init_params: Callable, targets: tuple, los
     def agent(aux=None) -> Agent:
         return Agent(encode, dist, controller, aux)
 
-    return Learner(config=cfg, init=init, update=update, params=params_of, agent=agent, modules=modules, loss=loss)
+    return Learner(config=cfg, init=init, update=update, params=params_of, agent=agent, modules=modules, loss=loss,
+                   step=step)
 
 
 def goal_in(cfg: BaselineConfig, obs, goal):
