@@ -171,12 +171,32 @@ def markdown(rows: dict, variant: str, tasks: Sequence[int], seeds: Sequence[int
     return '\n'.join(lines) + '\n'
 
 
+def _write_tables(out, spec, per_method, seed_ids, cfgs, env_name, style, preset, log) -> dict:
+    """``OUT/results.json``, ``table.md`` and ``success.png`` of the methods evaluated so far."""
+    names = list(per_method)
+    first = per_method[names[0]]
+    rows = aggregate(per_method, seed_ids)
+    variant, tasks, episodes = first['variants'][0], first['tasks'], int(first['episodes'])
+    result = dict(spec, methods=names, tasks=tasks, episodes=episodes, variants=first['variants'], rows=rows,
+                  configs={n: c.to_dict() for n, c in cfgs.items()})
+    files.write_json(os.path.join(out, 'results.json'), result)
+    table = markdown(rows, variant, tasks, seed_ids, episodes)
+    files.write_text(os.path.join(out, 'table.md'), table)
+    plots.method_bars(rows, variant, os.path.join(out, 'success.png'),
+                      title=f'{env_name} {style} ({variant}), {preset} preset: mean of {len(seed_ids)} seed(s), 95% '
+                            'interval')
+    log(table)
+    log(f'wrote {out}/results.json, {out}/table.md and {out}/success.png')
+    return result
+
+
 def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, preset: str = 'cpu',
             dataset: Optional[str] = None, style: str = 'navigate', collect_episodes: int = 100,
             collect_batch: int = 55, overrides: Sequence[str] = (), shift: str = 'base', first_seed: int = 0,
             eval_seed: int = 0, log=print) -> dict:
-    """``aqm-mjx compare``: data -> each method's seeds trained (vmapped) -> one evaluation on the
-    same episodes -> ``OUT/results.json``, ``OUT/table.md`` and ``OUT/success.png``.
+    """``aqm-mjx compare``: data, then for each method in turn its seeds trained (vmapped) and evaluated
+    on the shared episodes; ``OUT/results.json``, ``OUT/table.md`` and ``OUT/success.png`` are
+    rewritten after each method, so an interrupted comparison leaves the table of those done.
 
     Everything (methods, overrides, layouts, tasks, the folder's earlier request) is checked before
     data are collected. Returns the comparison written to ``results.json``.
@@ -204,30 +224,22 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
 
     path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style)
     data = run.read_data(path, env)
-    log(f'[train] {len(names)} method(s) x {seeds} seed(s) ({preset} preset), seeds vmapped per method')
-    for n, c in cfgs.items():
-        keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seed_ids])
-        fit.train_seeds(n, [dataclasses.replace(c.train, seed=s) for s in seed_ids], data,
-                        seed_folders(out, n, seed_ids), keys, dataset_path=os.path.abspath(path), log=log)
-    log(f'[evaluate] every checkpoint on the episodes of PRNGKey({eval_seed})')
-    per_method = {}
-    for n, c in cfgs.items():
+    log(f'{len(names)} method(s) x {seeds} seed(s) ({preset} preset), one method at a time: its seeds trained as '
+        f'one vmapped program, then evaluated on the episodes of PRNGKey({eval_seed}); the table grows as each ends')
+    per_method, result = {}, None
+    for i, (n, c) in enumerate(cfgs.items()):
         folders, ev = seed_folders(out, n, seed_ids), os.path.join(out, 'eval', n)
+        log(f'[{i + 1}/{len(cfgs)} {n}] train and evaluate')
+        keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seed_ids])
+        fit.train_seeds(n, [dataclasses.replace(c.train, seed=s) for s in seed_ids], data, folders, keys,
+                        dataset_path=os.path.abspath(path), log=log)
         if _evaluated(ev, folders, c.train.steps):
             log(f'{n}: evaluated already ({ev}/results.json)')
         else:
             run.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
         per_method[n] = files.read_json(os.path.join(ev, 'results.json'), 'an evaluation written by aqm-mjx evaluate')
-    first = per_method[names[0]]
-    rows = aggregate(per_method, seed_ids)
-    variant, tasks, episodes = first['variants'][0], first['tasks'], int(first['episodes'])
-    result = dict(spec, methods=names, tasks=tasks, episodes=episodes, variants=first['variants'], rows=rows,
-                  configs={n: c.to_dict() for n, c in cfgs.items()})
-    files.write_json(os.path.join(out, 'results.json'), result)
-    table = markdown(rows, variant, tasks, seed_ids, episodes)
-    files.write_text(os.path.join(out, 'table.md'), table)
-    plots.method_bars(rows, variant, os.path.join(out, 'success.png'),
-                      title=f'{env_name} {style} ({variant}), {preset} preset: mean of {seeds} seed(s), 95% interval')
-    log(table)
-    log(f'wrote {out}/results.json, {out}/table.md and {out}/success.png')
+        result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method}, env_name, style,
+                               preset, log if i + 1 == len(cfgs) else (lambda *_: None))
+        if i + 1 < len(cfgs):
+            log(f'{n}: done; {out}/table.md now holds {", ".join(per_method)}')
     return result

@@ -1,44 +1,46 @@
-"""Training updates/s at the paper's shapes and at the CPU preset, compile time apart.
+"""Training updates/s of every registered method at the ``cpu`` and ``paper`` shapes, compile time
+apart, and seeds vmapped against one seed, in one run.
 
-    python benchmarks/bench_train.py                    # CPU: about 3 minutes
-    python benchmarks/bench_train.py --presets paper --calls 5     # on a GPU
+    python benchmarks/bench_train.py                                   # CPU: every method, about 25 minutes here
+    python benchmarks/bench_train.py --methods aqm hiql --presets cpu  # some of them
+    python benchmarks/bench_train.py --presets paper --calls 5         # on a GPU
 
-Each row builds the learner for antmaze (29-d observations, 8-d actions) on a random dataset of
-100K states in 100 trajectories, runs one jitted chunk of ``updates_per_call`` updates (compile +
-run), then ``--calls`` more, timed with ``block_until_ready``. ``--updates-per-call`` overrides the
-preset's scan length (the paper preset's 1000 updates take minutes per call on a CPU).
-The 'hours for the preset' column is the preset's total updates at the measured rate.
+Each row builds a method's learner for antmaze (29-d observations, 8-d actions) on a random dataset
+of 100K states in 100 trajectories, runs one jitted chunk of ``updates_per_call`` updates (compile +
+run), then ``--calls`` more, timed with ``block_until_ready``. On a CPU the paper preset's chunk is
+cut to 20 updates (its 1000 take minutes per call). At the presets in ``--vmap-presets`` the same
+chunk also runs for ``--vmap-seeds`` seeds under ``jax.vmap`` (what ``aqm-mjx compare`` does) and
+the row gives seed-updates/s and the ratio to one seed measured in the same run. 'hours for the
+preset' is the preset's total updates at the measured one-seed rate.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from aqm_mjx.data import dataset as dsm
-from aqm_mjx.learn import aqm, fit
+from aqm_mjx.learn import fit, methods
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
 
-def rate(preset, calls, upc, objective='saw'):
-    over = dict(objective=objective)
-    if upc:
-        over.update(updates_per_call=upc, log_every=upc, checkpoint_every=upc, steps=upc)
-    cfg = aqm.AQMConfig.preset(preset, env='antmaze-medium', **over)
+def _dataset():
     rng = np.random.default_rng(0)
     n = 100_000
     term = np.zeros(n, bool)
     term[999::1000] = True
-    data = dict(observations=rng.normal(size=(n, 29)).astype(np.float32),
-                actions=rng.uniform(-1, 1, (n, 8)).astype(np.float32), terminals=term)
-    learner = aqm.make(cfg, 29, 8)
-    ds = dsm.to_device(data)
-    state = learner.init(jax.random.PRNGKey(0))
-    chunk = jax.jit(fit.chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
+    return dsm.to_device(dict(observations=rng.normal(size=(n, 29)).astype(np.float32),
+                              actions=rng.uniform(-1, 1, (n, 8)).astype(np.float32), terminals=term))
+
+
+def _timed(chunk, state, ds, calls):
+    """(compile + first call s, mean s of ``calls`` more calls, last metrics)."""
     t0 = time.perf_counter()
     state, m = jax.block_until_ready(chunk(state, ds))
     first = time.perf_counter() - t0
@@ -46,30 +48,74 @@ def rate(preset, calls, upc, objective='saw'):
     for _ in range(calls):
         state, m = chunk(state, ds)
     jax.block_until_ready(state)
-    dt = (time.perf_counter() - t0) / calls
+    return first, (time.perf_counter() - t0) / calls, m
+
+
+def _widths(cfg) -> dict:
+    d = cfg.to_dict()
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()
+            if k.endswith('hidden') or k in ('latent', 'rep_dim', 'n_components', 'component_size')}
+
+
+def rate(preset, calls, upc, objective='saw', method='aqm', seeds=1):
+    """One row: ``method`` at ``preset`` (AQM's ``objective``), one seed, and ``seeds`` vmapped if > 1."""
+    entry = methods.get(method)
+    over = dict(objective=objective) if 'objective' in entry.config.__dataclass_fields__ else {}
+    if upc:
+        over.update(updates_per_call=upc, log_every=upc, checkpoint_every=upc, steps=upc)
+    cfg = entry.preset(preset, env='antmaze-medium', **over)
+    learner = entry.make(cfg, 29, 8)
+    ds = _dataset()
+    step = fit.chunk_step(learner.update, cfg.updates_per_call)
+    first, dt, m = _timed(jax.jit(step, donate_argnums=0), learner.init(jax.random.PRNGKey(0)), ds, calls)
     per_s = cfg.updates_per_call / dt
-    full = aqm.AQMConfig.preset(preset).steps
-    return dict(preset=preset, objective=objective, batch=cfg.batch_size, q_hidden=list(cfg.q_hidden),
-                latent=f'{cfg.n_components}x{cfg.component_size}', pi_hidden=list(cfg.pi_hidden),
-                updates_per_call=cfg.updates_per_call, compile_s=round(first - dt, 1), updates_per_s=round(per_s, 1),
-                hours_for_preset=round(full / per_s / 3600, 2), finite=bool(np.isfinite(float(m['qrl/loss']))))
+    full = entry.preset(preset).steps
+    row = dict(method=method, preset=preset, batch=cfg.batch_size, **_widths(cfg), updates_per_call=cfg.updates_per_call,
+               compile_s=round(first - dt, 1), updates_per_s=round(per_s, 1),
+               hours_for_preset=round(full / per_s / 3600, 2),
+               finite=bool(all(np.isfinite(float(v)) for v in m.values())))
+    if method == 'aqm':
+        row['objective'] = objective
+    if seeds > 1:
+        states = jax.tree.map(lambda *x: jnp.stack(x), *[learner.init(jax.random.PRNGKey(i)) for i in range(seeds)])
+        vm = jax.jit(jax.vmap(step, in_axes=(0, None)), donate_argnums=0)
+        first_v, dt_v, _ = _timed(vm, states, ds, calls)
+        row.update(vmap_seeds=seeds, vmap_compile_s=round(first_v - dt_v, 1),
+                   vmap_seed_updates_per_s=round(seeds * cfg.updates_per_call / dt_v, 1),
+                   vmap_vs_one_seed=round(seeds * dt / dt_v, 2))
+    return row
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--methods', nargs='*', default=methods.names(), choices=methods.names())
     p.add_argument('--presets', nargs='*', default=['cpu', 'paper'])
     p.add_argument('--calls', type=int, default=2)
     p.add_argument('--updates-per-call', type=int, default=None)
-    p.add_argument('--objectives', nargs='*', default=['saw'])
+    p.add_argument('--objectives', nargs='*', default=['saw'], help="AQM's objectives (aqm rows)")
+    p.add_argument('--vmap-seeds', type=int, default=2, help='seeds under vmap (1: not measured)')
+    p.add_argument('--vmap-presets', nargs='*', default=['cpu'], help='presets where vmapped seeds are measured')
     p.add_argument('--out', default=None)
     a = p.parse_args()
     rows = []
+    print(f'{"method":<9}{"preset":<7}{"batch":>6}{"upd/call":>9}{"compile s":>10}{"upd/s":>9}{"h for preset":>13}'
+          f'{"seeds":>6}{"vmapped seed-upd/s":>20}{"ratio":>7}')
     for preset in a.presets:
-        for obj in a.objectives:
-            upc = a.updates_per_call or (20 if preset == 'paper' and jax.default_backend() == 'cpu' else None)
-            r = rate(preset, a.calls, upc, obj)
-            print(r, flush=True)
-            rows.append(r)
+        upc = a.updates_per_call or (20 if preset == 'paper' and jax.default_backend() == 'cpu' else None)
+        for method in a.methods:
+            for obj in (a.objectives if method == 'aqm' else ['saw']):
+                seeds = a.vmap_seeds if preset in a.vmap_presets else 1
+                r = rate(preset, a.calls, upc, obj, method, seeds)
+                label = method if method != 'aqm' or len(a.objectives) == 1 else f'aqm:{obj}'
+                vm = (f'{seeds:>6}{r["vmap_seed_updates_per_s"]:>20.1f}{r["vmap_vs_one_seed"]:>7.2f}' if seeds > 1
+                      else f'{"-":>6}{"-":>20}{"-":>7}')
+                print(f'{label:<9}{preset:<7}{r["batch"]:>6}{r["updates_per_call"]:>9}{r["compile_s"]:>10.1f}'
+                      f'{r["updates_per_s"]:>9.1f}{r["hours_for_preset"]:>13.2f}' + vm + ('' if r['finite'] else
+                                                                                             '  NON-FINITE'), flush=True)
+                rows.append(r)
+                if a.out:  # rows so far, so that a run cut short keeps what it measured
+                    with open(a.out, 'w') as f:
+                        json.dump(dict(rows=rows, complete=False), f, indent=1)
     finish(rows, a.out)
 
 
