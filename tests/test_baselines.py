@@ -261,6 +261,7 @@ def test_baseline_resume_is_bit_identical(tmp_path, name):
 
 
 # ------------------------------------------------------------------------------- evaluation
+@pytest.mark.slow  # the compare tests evaluate flat methods in CI (tests/test_compare.py)
 def test_a_flat_method_is_evaluated_without_a_map(tmp_path):
     from aqm_mjx import run as run_lib
 
