@@ -24,3 +24,14 @@ def two_device_python(tmp_path):
         return p.stdout
 
     return run
+
+
+@pytest.fixture(scope='session')
+def one_way_grid_walks():
+    """The calibration set-up: a 5 x 5 grid whose column 2 is one-way except in row 4, 400 random
+    walks of 40 steps on it, and the exact shortest-path steps between its cells.
+    Returns ``(dataset dict, truth [25, 25])``."""
+    from aqm_mjx.data import synthetic  # pylint: disable=import-outside-toplevel
+
+    grid = synthetic.one_way_grid(5, one_way_column=2, open_rows=(4,))
+    return synthetic.grid_walks(grid, episodes=400, steps=40, seed=0), synthetic.shortest_steps(grid)

@@ -347,22 +347,15 @@ def _grid_values(name, learner, params, cells):
 
 @pytest.mark.slow
 @pytest.mark.parametrize('name', ['gcivl', 'hiql', 'qrl', 'crl'])
-def test_values_order_states_by_shortest_path_on_the_one_way_grid(name):
-    grid = synthetic.one_way_grid(5, one_way_column=2, open_rows=(4,))
-    data = synthetic.grid_walks(grid, episodes=400, steps=40, seed=0)
-    truth = synthetic.shortest_steps(grid)
+def test_values_order_states_by_shortest_path_on_the_one_way_grid(name, one_way_grid_walks):
+    data, truth = one_way_grid_walks
     m = methods.get(name)
     over = dict(env=None, steps=6000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=500,
                 value_hidden=(64, 64), actor_hidden=(32,), lr=1e-3, conditioning='goal', subgoal_offset=3)
     if name in ('qrl', 'crl'):
         over['latent'] = 64
-    cfg = m.preset('ci', **over)
-    learner = m.make(cfg, 2, 2)
-    state = learner.init(jax.random.PRNGKey(0))
-    ds = dsm.to_device(data)
-    chunk = jax.jit(fit.chunk_step(learner.update, cfg.updates_per_call))
-    for _ in range(cfg.chunks):
-        state, _ = chunk(state, ds)
+    learner = m.make(m.preset('ci', **over), 2, 2)
+    state, _ = jax.jit(lambda k, d: fit.train_scan(learner, k, d))(jax.random.PRNGKey(0), dsm.to_device(data))
     cells = jnp.array([(x, y) for x in range(5) for y in range(5)], jnp.float32)
     d = _grid_values(name, learner, state.params, cells)
     off = ~np.eye(25, dtype=bool)
