@@ -104,14 +104,14 @@ def seed_folders(out: str, method: str, seeds: Sequence[int]) -> list[str]:
     return [os.path.join(out, 'train', method, f'seed_{s}') for s in seeds]
 
 
-def _evaluated(ev: str, folders: list[str], steps: int) -> bool:
-    """Whether ``ev/results.json`` covers these run folders at ``steps``."""
+def _evaluation(ev: str, folders: list[str], steps: int) -> Optional[dict]:
+    """``ev/results.json`` if it covers these run folders at ``steps``, else None."""
     path = os.path.join(ev, 'results.json')
     if not os.path.exists(path):
-        return False
-    got = files.read_json(path, 'an evaluation written by aqm-mjx evaluate').get('checkpoints', {})
-    have = {os.path.normpath(c['checkpoint']): c['step'] for c in got.values()}
-    return all(have.get(os.path.normpath(os.path.abspath(f))) == steps for f in folders)
+        return None
+    res = files.read_json(path, 'an evaluation written by aqm-mjx evaluate')
+    have = {os.path.normpath(c['checkpoint']): c['step'] for c in res.get('checkpoints', {}).values()}
+    return res if all(have.get(os.path.normpath(os.path.abspath(f))) == steps for f in folders) else None
 
 
 def aggregate(per_method: dict[str, dict], seeds: Sequence[int]) -> dict:
@@ -125,7 +125,7 @@ def aggregate(per_method: dict[str, dict], seeds: Sequence[int]) -> dict:
     rows = {}
     for m, res in per_method.items():
         episodes, tasks = int(res['episodes']), list(res['tasks'])
-        labels = [f'{m}:seed_{s}' for s in seeds] if len(seeds) > 1 else [m]
+        labels = run.checkpoint_labels([f'seed_{s}' for s in seeds], [m] * len(seeds))  # as evaluate names them
         agents = []
         for key in res['summary']:
             label, agent = key.split('/', 1)
@@ -233,11 +233,13 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seed_ids])
         fit.train_seeds(n, [dataclasses.replace(c.train, seed=s) for s in seed_ids], data, folders, keys,
                         dataset_path=os.path.abspath(path), log=log)
-        if _evaluated(ev, folders, c.train.steps):
+        res = _evaluation(ev, folders, c.train.steps)
+        if res is not None:
             log(f'{n}: evaluated already ({ev}/results.json)')
         else:
             run.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
-        per_method[n] = files.read_json(os.path.join(ev, 'results.json'), 'an evaluation written by aqm-mjx evaluate')
+            res = files.read_json(os.path.join(ev, 'results.json'))  # as a re-run reads it (JSON types)
+        per_method[n] = res
         result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method}, env_name, style,
                                preset, log if i + 1 == len(cfgs) else (lambda *_: None))
         if i + 1 < len(cfgs):

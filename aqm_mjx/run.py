@@ -79,8 +79,9 @@ def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig
     constants, so seeds of one method compile once."""
     if programs is None:
         return None
-    sig = json.dumps([trained.method, dataclasses.replace(trained.config, seed=0).to_dict(), cfg.to_dict()['map'],
-                      cfg.to_dict()['agent'], cfg.to_dict()['protocol'], sorted(variants)], sort_keys=True)
+    run_cfg = cfg.to_dict()
+    sig = json.dumps([trained.method, dataclasses.replace(trained.config, seed=0).to_dict(), run_cfg['map'],
+                      run_cfg['agent'], run_cfg['protocol'], sorted(variants)], sort_keys=True)
     if sig not in programs:
         steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans).steps
         programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh())
@@ -183,13 +184,14 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
                          'compare checkpoints of one environment')
     labels = checkpoint_labels(checkpoints, [p[2].method for p in prepared])  # config.json read once, in _prepare
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
-    table, per, programs = {}, {}, {}
+    table, per, programs, observations = {}, {}, {}, {}
     for label, ckpt, (env, variants, c, path) in zip(labels, checkpoints, prepared):
         log(f'== {label} ({ckpt})')
         trained = fit.load(ckpt, log=log)
-        data = read_data(path, env)
+        if path not in observations:  # checkpoints of one dataset (seeds of a method) read it once
+            observations[path] = read_data(path, env)['observations']
         info = dict(checkpoint=os.path.abspath(ckpt), dataset=os.path.abspath(path), seed=seed)
-        res, rep = map_and_evaluate(trained, env, data['observations'], c, variants, k_map, k_eval,
+        res, rep = map_and_evaluate(trained, env, observations[path], c, variants, k_map, k_eval,
                                     os.path.join(out, label), info, log, programs)
         per[label] = dict(checkpoint=os.path.abspath(ckpt), method=trained.method, step=trained.step,
                           keypoints=rep['keypoints'])
