@@ -11,7 +11,9 @@ and ``checkpoints/<step>/``; :func:`load` rebuilds a trained method from the fol
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
+import math
 import os
 import time
 from typing import Any, Callable, NamedTuple, Optional, Union
@@ -97,8 +99,14 @@ def _trim_metrics(path: str, step: int) -> None:
     """Keep the metric lines up to ``step`` (a resumed run re-logs what came after its checkpoint)."""
     if not os.path.exists(path):
         return
+    def keep(line: str) -> bool:
+        try:
+            return json.loads(line).get('step', 0) <= step
+        except ValueError:  # a line torn by a kill during its write
+            return False
+
     with open(path) as f:
-        lines = [ln for ln in f if ln.strip() and json.loads(ln).get('step', 0) <= step]
+        lines = [ln for ln in f if ln.strip() and keep(ln)]
     tmp = path + '.tmp'
     with open(tmp, 'w') as f:
         f.writelines(lines)
@@ -163,41 +171,104 @@ def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, re
     if resume:
         step, state, _ = saver.restore(state, log=log)
         log(f'resumed {out} at step {step}' if step < cfg.steps else f'{out} is complete at step {step}')
-        _trim_metrics(metrics_path, step)
-    files.write_json(cfg_path, meta)
     start = int(state.step)
+    _trim_metrics(metrics_path, start)  # a fresh start drops what a killed run left
+    files.write_json(cfg_path, meta)
     if start % cfg.updates_per_call:
         raise ValueError(f'checkpoint step {start} is not a multiple of updates_per_call {cfg.updates_per_call}')
     chunk = jax.jit(chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
+    state, step = _host_loop(chunk, state, ds, cfg, start, [out], [saver], [meta], [set()], None,
+                             f'train {method.name} {cfg.preset}', progress)
+    return Trained(method.name, cfg, learner, state, step, meta)
+
+
+class DivergedError(RuntimeError):
+    """Training produced a non-finite loss or parameter; the message names it, the step and what to try."""
+
+
+def _strict_json(line: dict) -> str:
+    """One metrics line as strict JSON: a non-finite number is written as ``null``."""
+    clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in line.items()}
+    return json.dumps(clean, allow_nan=False)
+
+
+def _nonfinite_leaves(state, seeds: Optional[int]) -> dict:
+    """``{path: bool}`` per floating leaf of ``state`` (``[S]`` with ``seeds``): True where all values are finite."""
+    out = {}
+    for path, x in jax.tree_util.tree_flatten_with_path(state)[0]:
+        if jnp.issubdtype(x.dtype, jnp.inexact):
+            ok = jnp.isfinite(x)
+            out[jax.tree_util.keystr(path)] = ok.all() if seeds is None else ok.reshape(seeds, -1).all(1)
+    return out
+
+
+def _diverged(cfg, step: int, what: list[str], who: str, saved: list[int]) -> DivergedError:
+    shown = ', '.join(what[:3]) + (f' and {len(what) - 3} more' if len(what) > 3 else '')
+    lrs = [(f.name, getattr(cfg, f.name)) for f in dataclasses.fields(cfg) if f.name.startswith('lr')]
+    hint = ', '.join(f'{n}={v:g}' for n, v in lrs)
+    kept = (f'the newest checkpoint, step {max(saved)}, holds finite values (only finite states are saved)'
+            if saved else 'no checkpoint was written')
+    return DivergedError(f'training diverged{who} in updates {step - cfg.updates_per_call + 1}-{step}: non-finite '
+                         f'{shown}; stopped, {kept}. Try lower learning rates (now {hint}; --set NAME=VALUE) or '
+                         f'look for extreme values in the dataset')
+
+
+def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], savers: list, metas: list[dict],
+               skip: list[set], seeds: Optional[int], desc: str, progress: bool):
+    """The host side of training, shared by :func:`train` (``seeds=None``: one unvmapped state) and
+    :func:`train_seeds` (``seeds=S``: every leaf stacked on a leading axis, one folder per seed).
+
+    Each chunk: run it, check every metric and every floating leaf of the state for finiteness
+    (on the first non-finite value: write that chunk's metric line, stop with :class:`DivergedError`;
+    no checkpoint of a non-finite state is ever written), append strict-JSON metric lines every
+    ``log_every`` updates, move the bar, save checkpoints every ``checkpoint_every`` updates (not
+    those in ``skip[i]``, already on disk). Returns ``(state, step)``.
+    """
+    n = 1 if seeds is None else seeds
+    pick = (lambda x, i: x) if seeds is None else (lambda x, i: x[i])
+    check = jax.jit(functools.partial(_nonfinite_leaves, seeds=seeds))
     bar = None
     if progress and start < cfg.steps:
         from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
-        bar = tqdm(total=cfg.steps, initial=start, desc=f'train {method.name} {cfg.preset}', unit='upd',
-                   smoothing=0.1)
-    t_last, first = time.perf_counter(), True
-    with open(metrics_path, 'a') as mf:
-        while int(state.step) < cfg.steps:
+        bar = tqdm(total=cfg.steps, initial=start, desc=desc, unit='upd', smoothing=0.1)
+    t_last, first, step = time.perf_counter(), True, start
+    metric_files = [open(os.path.join(o, 'metrics.jsonl'), 'a') for o in outs]  # pylint: disable=consider-using-with
+    try:
+        while step < cfg.steps:
             state, m = chunk(state, ds)
-            m = {k: float(v) for k, v in jax.device_get(m).items()}
-            step = int(state.step)
+            m, finite = jax.device_get((m, check(state)))
+            step += cfg.updates_per_call
             now = time.perf_counter()
-            m['time/updates_per_s'] = cfg.updates_per_call / (now - t_last)
-            m['time/includes_compile'] = first
+            timing = {'time/updates_per_s': n * cfg.updates_per_call / (now - t_last), 'time/includes_compile': first}
             t_last, first = now, False
-            if step % cfg.log_every == 0 or step == cfg.steps:
-                mf.write(json.dumps({'step': step, 'preset': cfg.preset, **m}) + '\n')
-                mf.flush()
+            lines = [{'step': step, 'preset': cfg.preset, **{k: float(pick(v, i)) for k, v in m.items()}, **timing}
+                     for i in range(n)]
+            bad = [[k for k, v in ln.items() if isinstance(v, float) and not math.isfinite(v)]
+                   + [f'state{p}' for p, ok in finite.items() if not pick(ok, i)] for i, ln in enumerate(lines)]
+            if any(bad) or step % cfg.log_every == 0 or step == cfg.steps:
+                for mf, ln in zip(metric_files, lines):
+                    mf.write(_strict_json(ln) + '\n')
+                    mf.flush()
+            if any(bad):
+                i = next(i for i, b in enumerate(bad) if b)
+                raise _diverged(cfg, step, bad[i], '' if seeds is None else f' (seed folder {outs[i]})',
+                                savers[i].steps())
             if bar is not None:
                 bar.update(cfg.updates_per_call)
-                shown = {k.split('/')[-1]: f'{v:.3g}' for k, v in m.items() if k in PROGRESS_KEYS}
-                bar.set_postfix(shown)
+                bar.set_postfix({k.split('/')[-1]: f'{v:.3g}' for k, v in lines[0].items() if k in PROGRESS_KEYS})
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-                saver.save(step, state, meta)
-    if bar is not None:
-        bar.close()
-    saver.close()
-    return Trained(method.name, cfg, learner, state, int(state.step), meta)
+                for i, (saver, done) in enumerate(zip(savers, skip)):
+                    if step not in done:
+                        saver.save(step, jax.tree.map(lambda x, i=i: pick(x, i), state), metas[i])
+    finally:
+        for mf in metric_files:
+            mf.close()
+        for saver in savers:
+            saver.close()
+        if bar is not None:
+            bar.close()
+    return state, step
 
 
 PROGRESS_KEYS = ('qrl/d_pos_mean', 'qrl/d_goal_mean', 'qrl/lambda', 'policy/main_loss')  # shown on the bar
@@ -264,40 +335,8 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
     state = jax.tree.map(lambda *x: jnp.stack(x), *states)
     chunk = jax.jit(jax.vmap(chunk_step(learner.update, cfg.updates_per_call), in_axes=(0, None)),
                     donate_argnums=0)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
-
-        bar = tqdm(total=cfg.steps, initial=start, desc=f'train {method.name} {cfg.preset} x{n} seeds', unit='upd',
-                   smoothing=0.1)
-    t_last, first, step = time.perf_counter(), True, start
-    metric_files = [open(os.path.join(o, 'metrics.jsonl'), 'a') for o in outs]  # pylint: disable=consider-using-with
-    try:
-        while step < cfg.steps:
-            state, m = chunk(state, ds)
-            m = jax.device_get(m)
-            step += cfg.updates_per_call
-            now = time.perf_counter()
-            timing = {'time/updates_per_s': n * cfg.updates_per_call / (now - t_last), 'time/includes_compile': first}
-            t_last, first = now, False
-            if step % cfg.log_every == 0 or step == cfg.steps:
-                for i, mf in enumerate(metric_files):
-                    line = {k: float(v[i]) for k, v in m.items()}
-                    mf.write(json.dumps({'step': step, 'preset': cfg.preset, **line, **timing}) + '\n')
-                    mf.flush()
-            if bar is not None:
-                bar.update(cfg.updates_per_call)
-            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-                for i, (saver, d) in enumerate(zip(savers, done)):
-                    if step not in d:
-                        saver.save(step, jax.tree.map(lambda x, i=i: x[i], state), metas[i])
-    finally:
-        for mf in metric_files:
-            mf.close()
-        for saver in savers:
-            saver.close()
-        if bar is not None:
-            bar.close()
+    state, step = _host_loop(chunk, state, ds, cfg, start, outs, savers, metas, [set(d) for d in done], n,
+                             f'train {method.name} {cfg.preset} x{n} seeds', progress)
     return [Trained(method.name, c, learner, jax.tree.map(lambda x, i=i: x[i], state), step, meta)
             for i, (c, meta) in enumerate(zip(cfgs, metas))]
 
@@ -312,4 +351,8 @@ def load(out: str, step: Optional[int] = None, log=print) -> Trained:
         s, state, _ = saver.restore(template, step=step, log=log)
     finally:
         saver.close()
+    bad = [p for p, ok in jax.device_get(_nonfinite_leaves(learner.params(state), None)).items() if not ok]
+    if bad:
+        raise DivergedError(f'{out}: checkpoint {s} holds non-finite parameters ({", ".join(bad[:3])}'
+                            f'{" and more" if len(bad) > 3 else ""}); a diverged model cannot be evaluated')
     return Trained(method.name, cfg, learner, state, s, meta)
