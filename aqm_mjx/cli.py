@@ -45,6 +45,9 @@ def cmd_render(a):
     from aqm_mjx.envs.render import render_maze, render_panels  # pylint: disable=import-outside-toplevel
 
     _, maze = envs.parse_name(a.env)
+    bad = [d for d in a.deltas or () if not (d > 0 and d < float('inf'))]
+    if bad:
+        raise ValueError(f'--deltas must be finite numbers > 0; got {bad}')
     if a.deltas:
         from aqm_mjx.agent.oracle import keypoint_map_panels  # pylint: disable=import-outside-toplevel
 
@@ -72,6 +75,9 @@ def cmd_rollouts(a):
     from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
     from aqm_mjx.envs.render import render_maze  # pylint: disable=import-outside-toplevel
 
+    for name in ('envs', 'steps'):
+        if getattr(a, name) < 1:
+            raise ValueError(f'--{name} must be >= 1; got {getattr(a, name)}')
     os.makedirs(a.out, exist_ok=True)
     env = envs.make(a.env)
     print(f'{env}\ndevice: {jax.devices()[0]}; {a.envs} environments x {a.steps} control steps (random actions)')
@@ -124,11 +130,12 @@ def cmd_rollouts(a):
 def cmd_collect(a):
     """Collect an OGBench-format dataset in MJX with the scripted expert."""
     _enable_compile_cache()
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
     from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
 
-    collect.check_output(a.out, a.overwrite)  # before minutes of collection, not after
     cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
                                 batch=a.batch, seed=a.seed).resolved()
+    collect.check_output(a.out, a.overwrite, cfg)  # name, folder and free space before minutes of collection
     import jax  # pylint: disable=import-outside-toplevel
 
     print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
@@ -139,8 +146,7 @@ def cmd_collect(a):
     png = a.out[:-4] + '.png'
     collect.plot(res, png)
     res.stats.update(train=train, val=val if cfg.val_episodes else None, picture=png)
-    with open(a.out[:-4] + '.json', 'w') as f:
-        json.dump(res.stats, f, indent=1)
+    files.write_json(a.out[:-4] + '.json', res.stats)
     print(json.dumps(res.stats, indent=1))
     return 0
 
@@ -169,6 +175,8 @@ def cmd_train(a):
             raise
         inferred, style = None, None
     env_name = a.env or inferred
+    if a.env and inferred:
+        dataset.check_env_name(a.dataset, a.env)
     cfg = None
     obs_size = action_size = None
     if not a.resume:
@@ -233,10 +241,11 @@ def cmd_run(a):
         return 0
     if a.shift != 'base':
         raise ValueError('--one-program evaluates the base layout; drop --shift')
-    path = run.data_stage(a.env, out, a.dataset, a.collect_episodes, a.collect_batch)
-    data = run.read_data(path, envs.make(a.env))
-    res = run.run_one_program(cfg, data, a.seeds)
-    files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
+    with files.run_lock(out):  # one writer per run folder
+        path = run.data_stage(a.env, out, a.dataset, a.collect_episodes, a.collect_batch)
+        data = run.read_data(path, envs.make(a.env))
+        res = run.run_one_program(cfg, data, a.seeds)
+        files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
     print(f'wrote {out}/one_program.json')
     return 0
 
@@ -275,6 +284,14 @@ def cmd_compare(a):
                     collect_episodes=a.collect_episodes, collect_batch=a.collect_batch, overrides=a.set or [],
                     shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed)
     return 0
+
+
+def _one_line(err: BaseException) -> str:
+    """An error as the one line the user reads: an OS error as ``path: reason``."""
+    if isinstance(err, OSError) and err.strerror and err.filename:
+        return f'{err.filename}: {err.strerror}'
+    text = ' '.join(str(err).split())
+    return text or type(err).__name__
 
 
 def main(argv=None):
@@ -427,13 +444,15 @@ def main(argv=None):
     a = p.parse_args(argv)
     try:
         return a.fn(a)
-    except (ValueError, TypeError, FileExistsError, FileNotFoundError, RuntimeError) as err:
-        print(f'aqm-mjx: error: {err}', file=sys.stderr)
+    except (ValueError, TypeError, OSError, RuntimeError) as err:
+        print(f'aqm-mjx: error: {_one_line(err)}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         # files are written atomically and checkpoints are complete or absent: nothing half-written
-        print(f'\naqm-mjx {a.cmd}: interrupted. Run the same command again to resume (training continues '
-              'from its last checkpoint; finished stages are not redone).', file=sys.stderr)
+        again = ('the same command with --resume' if a.cmd == 'train' and not getattr(a, 'resume', False)
+                 else 'the same command again')
+        print(f'\naqm-mjx {a.cmd}: interrupted. Run {again} to resume (training continues from its last '
+              'checkpoint; finished stages are not redone).', file=sys.stderr)
         return 130
 
 

@@ -207,10 +207,11 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
     if dataset is not None:
         if not os.path.exists(dataset):
             raise FileNotFoundError(f'dataset {dataset!r} not found')
-        inferred, inferred_style = ds_io.infer_env(dataset) if dataset.endswith('.npz') else (None, None)
-        if inferred not in (None, env_name):
-            raise ValueError(f'{dataset} is named for {inferred}, not {env_name}; pass the matching --env')
-        style = inferred_style or style
+        ds_io.check_env_name(dataset, env_name)
+        try:
+            style = ds_io.infer_env(dataset)[1] or style
+        except ValueError:
+            pass  # not an OGBench name: --style stands
     names = list(method_names)
     cfgs = method_configs(env_name, names, preset, overrides, explore=style == 'explore')
     env = envs.make(env_name)
@@ -219,29 +220,31 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         plan_episodes(env, c.protocol, c.agent.kappa, variants)  # bad task ids fail before any work
     seed_ids = [first_seed + i for i in range(seeds)]
     spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
-    all_names = _check_spec(out, spec, names)
-    files.write_json(os.path.join(out, 'compare.json'), dict(spec, methods=all_names), makedirs=True)
+    with files.run_lock(out):  # one writer per run folder
+        all_names = _check_spec(out, spec, names)
+        files.write_json(os.path.join(out, 'compare.json'), dict(spec, methods=all_names), makedirs=True)
 
-    path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style)
-    data = run.read_data(path, env)
-    log(f'{len(names)} method(s) x {seeds} seed(s) ({preset} preset), one method at a time: its seeds trained as '
-        f'one vmapped program, then evaluated on the episodes of PRNGKey({eval_seed}); the table grows as each ends')
-    per_method, result = {}, None
-    for i, (n, c) in enumerate(cfgs.items()):
-        folders, ev = seed_folders(out, n, seed_ids), os.path.join(out, 'eval', n)
-        log(f'[{i + 1}/{len(cfgs)} {n}] train and evaluate')
-        keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seed_ids])
-        fit.train_seeds(n, [dataclasses.replace(c.train, seed=s) for s in seed_ids], data, folders, keys,
-                        dataset_path=os.path.abspath(path), log=log)
-        res = _evaluation(ev, folders, c.train.steps)
-        if res is not None:
-            log(f'{n}: evaluated already ({ev}/results.json)')
-        else:
-            run.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
-            res = files.read_json(os.path.join(ev, 'results.json'))  # as a re-run reads it (JSON types)
-        per_method[n] = res
-        result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method}, env_name, style,
-                               preset, log if i + 1 == len(cfgs) else (lambda *_: None))
-        if i + 1 < len(cfgs):
-            log(f'{n}: done; {out}/table.md now holds {", ".join(per_method)}')
-    return result
+        path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style)
+        data = run.read_data(path, env)
+        log(f'{len(names)} method(s) x {seeds} seed(s) ({preset} preset), one method at a time: its seeds trained '
+            f'as one vmapped program, then evaluated on the episodes of PRNGKey({eval_seed}); the table grows as each '
+            'ends')
+        per_method, result = {}, None
+        for i, (n, c) in enumerate(cfgs.items()):
+            folders, ev = seed_folders(out, n, seed_ids), os.path.join(out, 'eval', n)
+            log(f'[{i + 1}/{len(cfgs)} {n}] train and evaluate')
+            keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seed_ids])
+            fit.train_seeds(n, [dataclasses.replace(c.train, seed=s) for s in seed_ids], data, folders, keys,
+                            dataset_path=os.path.abspath(path), log=log)
+            res = _evaluation(ev, folders, c.train.steps)
+            if res is not None:
+                log(f'{n}: evaluated already ({ev}/results.json)')
+            else:
+                run.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
+                res = files.read_json(os.path.join(ev, 'results.json'))  # as a re-run reads it (JSON types)
+            per_method[n] = res
+            result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method}, env_name, style,
+                                   preset, log if i + 1 == len(cfgs) else (lambda *_: None))
+            if i + 1 < len(cfgs):
+                log(f'{n}: done; {out}/table.md now holds {", ".join(per_method)}')
+        return result

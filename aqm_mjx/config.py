@@ -84,6 +84,45 @@ def with_overrides(cfg, pairs) -> Any:
     return dataclasses.replace(cfg, **changes)
 
 
+def _matches(ann: str, value) -> bool:
+    """Whether ``value`` is of the annotated type (``int`` is accepted where a ``float`` is)."""
+    ann = ann.replace('typing.', '').replace(' ', '')
+    if ann.startswith('Optional['):
+        return value is None or _matches(ann[len('Optional['):-1], value)
+    if ann.endswith('|None'):
+        return value is None or _matches(ann[:-len('|None')], value)
+    if ann.startswith('tuple['):
+        elem = ann[len('tuple['):-1].split(',')[0]
+        return isinstance(value, tuple) and all(_matches(elem, v) for v in value)
+    if ann == 'bool':
+        return isinstance(value, bool)
+    if ann == 'int':
+        return isinstance(value, int) and not isinstance(value, bool)
+    if ann == 'float':
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if ann == 'str':
+        return isinstance(value, str)
+    return True  # other annotations are checked by their config
+
+
+def check_types(cfg) -> None:
+    """Every field holds a value of its annotated type; the error names the field (a config read
+    from an edited JSON file, or built in code with a wrong value)."""
+    for f in dataclasses.fields(cfg):
+        ann = _annotation(type(cfg), f.name)
+        v = getattr(cfg, f.name)
+        if not _matches(ann, v):
+            raise ValueError(f'{type(cfg).__name__}.{f.name} must be {ann.replace("typing.", "")}; got {v!r}')
+
+
+def check_widths(cfg, *names) -> None:
+    """Layer-width tuples: at least one layer, every width an integer >= 1."""
+    for name in names:
+        v = getattr(cfg, name)
+        if not v or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in v):
+            raise ValueError(f'{type(cfg).__name__}.{name} must be one or more layer widths >= 1; got {v!r}')
+
+
 def check_choice(cls_name: str, name: str, value, allowed) -> None:
     if value not in allowed:
         raise ValueError(f'{cls_name}.{name}: unknown value {value!r}; expected one of {", ".join(map(str, allowed))}')

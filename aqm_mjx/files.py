@@ -1,31 +1,73 @@
-"""Small JSON and text files written atomically (a config beside a checkpoint, a run's summary, results)."""
+"""Small JSON and text files written atomically (a config beside a checkpoint, a run's summary,
+results), and the one-writer lock of a run folder."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
+import shutil
+import socket
+import sys
+import tempfile
+import time
 
 
 class MissingFileError(FileNotFoundError):
     """A file a run folder should hold is not there; the message says which and why it matters."""
 
 
+class OutputError(OSError):
+    """An output that cannot be written (read-only, not a folder, no space); the message says which."""
+
+
 def write_json(path: str, obj: dict, makedirs: bool = False) -> None:
     """Atomic JSON write: the old file stays until the new one is complete."""
     if makedirs:
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = path + '.tmp'
-    with open(tmp, 'w') as f:
-        json.dump(obj, f, indent=1, sort_keys=True)
-    os.replace(tmp, path)
+    write_text(path, json.dumps(obj, indent=1, sort_keys=True))
 
 
 def write_text(path: str, text: str) -> None:
-    """Atomic text write (a table beside results)."""
+    """Atomic text write: the old file stays until the new one is complete, and a failed write
+    (disk full, read-only) leaves no temporary file behind."""
     tmp = path + '.tmp'
-    with open(tmp, 'w') as f:
-        f.write(text)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, 'w') as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def _existing_parent(path: str) -> str:
+    path = os.path.abspath(path)
+    while not os.path.exists(path):
+        path = os.path.dirname(path)
+    return path
+
+
+def check_writable(folder: str, need_bytes: int = 0, what: str = 'the output') -> None:
+    """Before minutes of work: ``folder`` can be created and written, with about ``need_bytes`` free.
+
+    Raises :class:`OutputError` naming the folder and the reason (a file in the way, read-only or
+    no permission, too little space)."""
+    parent = _existing_parent(folder)
+    if not os.path.isdir(parent):
+        raise OutputError(f'cannot write to {folder}: {parent} is a file, not a folder')
+    try:
+        fd, probe = tempfile.mkstemp(dir=parent, prefix='.aqm-mjx-probe-')
+        os.close(fd)
+        os.remove(probe)
+    except OSError as e:
+        raise OutputError(f'cannot write to {folder}: {e.strerror or e} ({parent})') from None
+    free = shutil.disk_usage(parent).free
+    if need_bytes > free:
+        raise OutputError(f'{what} needs about {need_bytes / 2 ** 20:.1f} MiB in {folder}; only '
+                          f'{free / 2 ** 20:.1f} MiB are free there')
 
 
 def read_json(path: str, what: str = 'a run folder written by aqm-mjx train') -> dict:
@@ -33,3 +75,63 @@ def read_json(path: str, what: str = 'a run folder written by aqm-mjx train') ->
         raise MissingFileError(f'{path}: no such file (is this {what}?)')
     with open(path) as f:
         return json.load(f)
+
+
+LOCK_NAME = '.aqm-mjx.lock'
+_HELD: dict[str, list] = {}  # folder -> [open lock file, depth]: a process may take its own lock again
+
+
+class LockedError(RuntimeError):
+    """A run folder is being written by another process; the message names it."""
+
+
+@contextlib.contextmanager
+def run_lock(folder: str):
+    """Hold ``FOLDER/.aqm-mjx.lock`` for the duration: one writer per run folder.
+
+    The lock is an ``flock`` on that file, which the kernel releases when its holder ends in any
+    way (``kill -9`` included), so a crashed run never leaves a folder stuck; the file itself
+    says who holds it (pid, host, command, since when) for the message a second writer gets. The
+    same process may enter the lock again (a pipeline that trains inside its run folder).
+    Raises :class:`LockedError` at once when another process holds it.
+    """
+    created = not os.path.exists(folder)
+    check_writable(folder)
+    os.makedirs(folder, exist_ok=True)
+    key = os.path.realpath(folder)
+    if key in _HELD:
+        _HELD[key][1] += 1
+        try:
+            yield
+        finally:
+            _HELD[key][1] -= 1
+        return
+    path = os.path.join(folder, LOCK_NAME)
+    f = open(path, 'a+')  # pylint: disable=consider-using-with  (held until the block ends)
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        try:
+            who = json.loads(f.read() or '{}')
+        except ValueError:
+            who = {}
+        f.close()
+        raise LockedError(f'{folder} is in use by another aqm-mjx process (pid {who.get("pid", "?")} on '
+                          f'{who.get("host", "?")}, `{who.get("command", "?")}` since {who.get("since", "?")}); '
+                          f'wait for it to end or stop it, or choose another --out') from None
+    f.seek(0)
+    f.truncate()
+    f.write(json.dumps(dict(pid=os.getpid(), host=socket.gethostname(), command=' '.join(['aqm-mjx'] + sys.argv[1:]),
+                            since=time.strftime('%Y-%m-%d %H:%M:%S'))))
+    f.flush()
+    _HELD[key] = [f, 1]
+    try:
+        yield
+    finally:
+        del _HELD[key]
+        if created and os.listdir(folder) == [LOCK_NAME]:  # failed before writing anything: leave no folder
+            os.remove(path)
+            os.rmdir(folder)
+        fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+        f.close()

@@ -44,6 +44,7 @@ def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, b
         return path
     os.makedirs(os.path.dirname(path), exist_ok=True)
     ccfg = collect.CollectConfig(env=env_name, style=style, episodes=episodes, batch=batch).resolved()
+    collect.check_output(path, cfg=ccfg)  # room for it, before minutes of collection
     log(f'[1/4 data] collecting {ccfg.episodes} + {ccfg.val_episodes} {style} episodes x {ccfg.steps} states')
     res = collect.collect(ccfg)
     collect.write(res, path)
@@ -52,7 +53,9 @@ def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, b
 
 
 def read_data(path: str, env) -> dict:
-    """An OGBench file's arrays, checked against ``env``'s observation and action sizes."""
+    """An OGBench file's arrays, checked against ``env``'s observation and action sizes (and its
+    name, when the file's OGBench name says a maze)."""
+    ds_io.check_env_name(path, env.name)
     return ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
 
 
@@ -127,6 +130,8 @@ def _prepare(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], 
         raise ValueError(f'{checkpoint} does not record its environment (config.env); it cannot be evaluated')
     env = envs.make(train_cfg.env)
     variants = variants_for(env.maze, shift)
+    if dataset and not os.path.exists(dataset):
+        raise FileNotFoundError(f'--dataset {dataset}: no such file')
     path = dataset or meta.get('dataset')
     if not path or not os.path.exists(path):
         raise FileNotFoundError(f'dataset {path!r} of {checkpoint} not found (keypoints are selected from its '
@@ -149,12 +154,13 @@ def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, datase
     Layouts, tasks and the dataset are checked before anything is loaded or built.
     """
     env, variants, cfg, path = _prepare(checkpoint, cfg, dataset, shift, overrides)
+    out = out or os.path.join(checkpoint, 'eval')
+    files.check_writable(out, what='the evaluation')  # before the map and the episodes, not after
     trained = fit.load(checkpoint, log=log)
     data = read_data(path, env)
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
     info = dict(checkpoint=os.path.abspath(checkpoint), dataset=os.path.abspath(path), seed=seed)
-    return map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval,
-                            out or os.path.join(checkpoint, 'eval'), info, log)
+    return map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval, out, info, log)
 
 
 def checkpoint_labels(checkpoints, names) -> list[str]:
@@ -183,6 +189,7 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
         raise ValueError(f'the checkpoints were trained on different environments ({", ".join(env_names)}); '
                          'compare checkpoints of one environment')
     labels = checkpoint_labels(checkpoints, [p[2].method for p in prepared])  # config.json read once, in _prepare
+    files.check_writable(out, what='the evaluation')  # before any map or episode
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
     table, per, programs, observations = {}, {}, {}, {}
     for label, ckpt, (env, variants, c, path) in zip(labels, checkpoints, prepared):
@@ -223,43 +230,46 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
     env = envs.make(env_name)
     variants = variants_for(env.maze, shift)  # a bad --shift or task id fails here, not after training
     plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)
-    files.write_json(os.path.join(out, 'run.json'), cfg.to_dict(), makedirs=True)
-    times = {}
-    seed = cfg.train.seed
-    k_train, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
-    t0 = time.perf_counter()
-    path = data_stage(env_name, out, dataset, collect_episodes, collect_batch, log)
-    data = read_data(path, env)
-    times['data_s'] = time.perf_counter() - t0
-    # TRAIN (resumed when checkpoints exist; skipped when the run is complete)
-    tdir = os.path.join(out, 'train')
-    t0 = time.perf_counter()
-    done = fit.checkpoint_steps(tdir)
-    log('[2/4 train] ' + (f'{tdir} is complete at step {max(done)}' if done and max(done) >= cfg.train.steps else
-                           f'{"resuming" if done else "training"} {cfg.method} {cfg.train.preset} preset, '
-                           f'{cfg.train.steps} updates'))
-    trained = fit.train(cfg.method, cfg.train, data, tdir, resume='auto', dataset_path=os.path.abspath(path),
-                        key=k_train, log=log)
-    times['train_s'] = time.perf_counter() - t0
-    # MAP + EVALUATE, with the trained state in memory
-    t0 = time.perf_counter()
-    log('[3/4 map] and [4/4 evaluate]')
-    info = dict(checkpoint=os.path.abspath(tdir), dataset=os.path.abspath(path), seed=seed)
-    res, rep = map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval,
-                                os.path.join(out, 'eval'), info, log)
-    times['map_and_evaluate_s'] = time.perf_counter() - t0
-    summary_ = dict(env=env_name, seed=seed, config=cfg.to_dict(), dataset=os.path.abspath(path),
-                    keypoints=rep['keypoints'], success=res.summary,
-                    times_s={k: round(v, 1) for k, v in times.items()},
-                    pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')])
-    files.write_json(os.path.join(out, 'summary.json'), summary_)
-    head = res.agents[0]  # 'aqm', or 'flat' for a method without a quasimetric
-    row = res.summary[head][res.variants[0]]
-    log(f'{cfg.method} ({head}) on {env_name} ({res.variants[0]}): {100 * row["mean"]:.0f}% mean success ('
-        + ', '.join(f'task {t}: {100 * row[f"task_{t}"]:.0f}%' for t in res.tasks) + f'); {rep["keypoints"]} '
-        'keypoints; ' + ', '.join(f'{k[:-2]} {v:.0f} s' for k, v in times.items()))
-    log(f'wrote {out}/summary.json; map and trajectories: {out}/eval/trajectories.png')
-    return summary_
+    with files.run_lock(out):  # one writer per run folder
+        # a folder trained with other settings is refused here, before run.json or data change
+        fit.check_resumable(os.path.join(out, 'train'), cfg.method, cfg.train, env.obs_size, env.action_size)
+        files.write_json(os.path.join(out, 'run.json'), cfg.to_dict(), makedirs=True)
+        times = {}
+        seed = cfg.train.seed
+        k_train, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
+        t0 = time.perf_counter()
+        path = data_stage(env_name, out, dataset, collect_episodes, collect_batch, log)
+        data = read_data(path, env)
+        times['data_s'] = time.perf_counter() - t0
+        # TRAIN (resumed when checkpoints exist; skipped when the run is complete)
+        tdir = os.path.join(out, 'train')
+        t0 = time.perf_counter()
+        done = fit.checkpoint_steps(tdir)
+        log('[2/4 train] ' + (f'{tdir} is complete at step {max(done)}' if done and max(done) >= cfg.train.steps else
+                               f'{"resuming" if done else "training"} {cfg.method} {cfg.train.preset} preset, '
+                               f'{cfg.train.steps} updates'))
+        trained = fit.train(cfg.method, cfg.train, data, tdir, resume='auto', dataset_path=os.path.abspath(path),
+                            key=k_train, log=log)
+        times['train_s'] = time.perf_counter() - t0
+        # MAP + EVALUATE, with the trained state in memory
+        t0 = time.perf_counter()
+        log('[3/4 map] and [4/4 evaluate]')
+        info = dict(checkpoint=os.path.abspath(tdir), dataset=os.path.abspath(path), seed=seed)
+        res, rep = map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval,
+                                    os.path.join(out, 'eval'), info, log)
+        times['map_and_evaluate_s'] = time.perf_counter() - t0
+        summary_ = dict(env=env_name, seed=seed, config=cfg.to_dict(), dataset=os.path.abspath(path),
+                        keypoints=rep['keypoints'], success=res.summary,
+                        times_s={k: round(v, 1) for k, v in times.items()},
+                        pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')])
+        files.write_json(os.path.join(out, 'summary.json'), summary_)
+        head = res.agents[0]  # 'aqm', or 'flat' for a method without a quasimetric
+        row = res.summary[head][res.variants[0]]
+        log(f'{cfg.method} ({head}) on {env_name} ({res.variants[0]}): {100 * row["mean"]:.0f}% mean success ('
+            + ', '.join(f'task {t}: {100 * row[f"task_{t}"]:.0f}%' for t in res.tasks) + f'); {rep["keypoints"]} '
+            'keypoints; ' + ', '.join(f'{k[:-2]} {v:.0f} s' for k, v in times.items()))
+        log(f'wrote {out}/summary.json; map and trajectories: {out}/eval/trajectories.png')
+        return summary_
 
 
 def shard_seeds(keys: jax.Array, mesh=None) -> jax.Array:

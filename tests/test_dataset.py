@@ -72,7 +72,7 @@ def test_malformed_files_have_clear_messages(tmp_path):
         dsm.read_ogbench(str(tmp_path / 'nope.npz'))
     junk = tmp_path / 'junk.npz'
     junk.write_bytes(b'not a zip')
-    with pytest.raises(dsm.DatasetError, match='not a readable .npz'):
+    with pytest.raises(dsm.DatasetError, match='not an .npz archive'):
         dsm.read_ogbench(str(junk))
 
 

@@ -4,9 +4,15 @@ Each test makes the fault itself and checks the exit code, the one-line message 
 already on disk was lost or left half-written.
 """
 
+import dataclasses
 import json
 import math
 import os
+import re
+import socket
+import subprocess
+import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -116,3 +122,342 @@ def test_evaluation_refuses_non_finite_parameters(tmp_path, grid_data):
         fit.load(out, log=lambda *_: None)
     assert fit.load(out, step=100, log=lambda *_: None).step == 100
     assert not math.isnan(float(jax.tree.leaves(t.params)[0].ravel()[0]))
+
+
+# -------------------------------------------------------------------------------- torn checkpoints
+def _tear(out: str, step: int) -> dict:
+    """Overwrite every file of checkpoint ``step``; returns {relative path: bytes} of what is there."""
+    root = os.path.join(out, 'checkpoints', str(step))
+    torn = {}
+    for d, _, names in os.walk(root):
+        for name in names:
+            path = os.path.join(d, name)
+            with open(path, 'wb') as f:
+                f.write(b'torn')
+            torn[os.path.relpath(path, root)] = b'torn'
+    return torn
+
+
+def _leaves(out: str):
+    return [np.asarray(x).tobytes() for x in jax.tree.leaves(fit.load(out, log=lambda *_: None).state)]
+
+
+def test_resume_sets_a_torn_checkpoint_aside_and_goes_on(tmp_path, grid_file, capfd):
+    ref, out = str(tmp_path / 'ref'), str(tmp_path / 'run')
+    base = ['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci']
+    assert cli.main(base + ['--out', ref, '--steps', '300']) == 0
+    assert cli.main(base + ['--out', out]) == 0
+    torn = _tear(out, 200)
+    capfd.readouterr()
+    assert cli.main(['train', '--dataset', grid_file, '--resume', '--steps', '300', '--out', out]) == 0
+    o, e = capfd.readouterr()
+    warnings = [ln for ln in o.splitlines() if ln.startswith('warning:')]
+    assert len(warnings) == 1 and 'checkpoint 200' in warnings[0] and 'checkpoints_unreadable' in warnings[0]
+    assert 'resumed' in o and 'at step 100' in o
+    assert 'Traceback' not in e and 'absl' not in e and 'aqm-mjx: error' not in e
+    aside = os.path.join(out, 'checkpoints_unreadable', '200')
+    kept = {os.path.relpath(os.path.join(d, n), aside): open(os.path.join(d, n), 'rb').read()
+            for d, _, names in os.walk(aside) for n in names}
+    assert kept == torn  # moved, not deleted
+    assert fit.checkpoint_steps(out)[-1] == 300 and _leaves(out) == _leaves(ref)  # as if nothing happened
+    steps = [m['step'] for m in _strict_lines(os.path.join(out, 'metrics.jsonl'))]
+    assert steps == sorted(set(steps)) and steps[-1] == 300
+
+
+def test_seeds_resume_past_a_torn_checkpoint(tmp_path, grid_data):
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium')
+    outs = [str(tmp_path / f'seed_{i}') for i in range(2)]
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    fit.train_seeds('gcbc', [cfg, cfg], grid_data, outs, keys, progress=False, log=lambda *_: None)
+    before = [_leaves(o) for o in outs]
+    _tear(outs[1], 200)
+    longer = dataclasses.replace(cfg, steps=300)
+    logs = []
+    fit.train_seeds('gcbc', [longer, longer], grid_data, outs, keys, progress=False, log=logs.append)
+    assert any(ln.startswith('warning:') and 'moved to' in ln for ln in logs)
+    assert any('resuming 2 seed(s) at step 100' in ln for ln in logs)
+    assert [fit.checkpoint_steps(o) for o in outs] == [[100, 200, 300]] * 2
+    assert _leaves(outs[0]) != before[0]  # went on to 300
+    again = fit.load(outs[1], step=200, log=lambda *_: None).state
+    assert [np.asarray(x).tobytes() for x in jax.tree.leaves(again)] == before[1]  # step 200 written again, equal
+
+
+# ------------------------------------------------------------------------------------ two writers
+def test_a_second_writer_is_refused_and_a_killed_holder_frees_the_folder(tmp_path, grid_file, capsys):
+    out = str(tmp_path / 'run')
+    train = ['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--out', out]
+    first = subprocess.Popen([sys.executable, '-m', 'aqm_mjx.cli'] + train + ['--steps', str(10 ** 7)],
+                             env=dict(os.environ, JAX_PLATFORMS='cpu'), stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 300
+        while not fit.checkpoint_steps(out) and time.time() < deadline:  # running, and past its first save
+            time.sleep(0.2)
+        for argv in (train, ['train', '--dataset', grid_file, '--resume', '--out', out],
+                     ['run', '--env', 'pointmaze-medium', '--preset', 'ci', '--dataset', grid_file, '--out', out]):
+            assert cli.main(argv) == 2, argv
+            lines = _error_lines(capsys.readouterr().err)
+            assert len(lines) == 1 and f'pid {first.pid} on {socket.gethostname()}' in lines[0], lines
+            assert 'in use by another aqm-mjx process' in lines[0] and 'aqm-mjx train' in lines[0]
+        metrics_before = open(os.path.join(out, 'metrics.jsonl')).read()
+    finally:
+        first.kill()  # SIGKILL: the kernel drops its lock
+        first.wait()
+    assert open(os.path.join(out, 'metrics.jsonl')).read().startswith(metrics_before)  # nobody else wrote
+    assert cli.main(['train', '--dataset', grid_file, '--resume', '--steps', '200', '--out', out]) == 0
+    steps = [m['step'] for m in _strict_lines(os.path.join(out, 'metrics.jsonl'))]
+    assert steps == sorted(set(steps))
+
+
+# ------------------------------------------------------------------------ settings of a run folder
+def test_run_with_other_settings_is_refused_and_more_steps_extend(tmp_path, grid_data, grid_file):
+    from aqm_mjx import files, pipeline, run  # pylint: disable=import-outside-toplevel
+
+    cfg = pipeline.RunConfig.preset('ci', env='pointmaze-medium')
+    out, quiet = tmp_path / 'run', (lambda *_: None)
+    tdir = str(out / 'train')
+    fit.train(cfg.method, cfg.train, grid_data, tdir, progress=False, log=quiet)
+    files.write_json(str(out / 'run.json'), {'marker': 1})
+    other = cfg.with_overrides(['train.batch_size=32', 'train.seed=3'])
+    with pytest.raises(ValueError, match=rf'other settings \(saved vs asked\): batch_size: {cfg.train.batch_size} '
+                                         r'vs 32; seed: 0 vs 3'):
+        run.run_stepwise(other, str(out), dataset=grid_file, log=quiet)
+    assert json.load(open(out / 'run.json')) == {'marker': 1}  # refused before anything was written
+    n = cfg.train.steps
+    longer = dataclasses.replace(cfg.train, steps=n + 100)
+    t = fit.train(cfg.method, longer, grid_data, tdir, resume='auto', progress=False, log=quiet)
+    assert t.step == n + 100 and fit.checkpoint_steps(tdir)[-1] == n + 100  # extended, not skipped
+    with pytest.raises(ValueError, match=f'trained to step {n + 100}, past the {n} asked for'):
+        fit.train(cfg.method, cfg.train, grid_data, tdir, resume='auto', progress=False, log=quiet)
+
+
+def test_a_fresh_start_drops_a_killed_runs_metrics(tmp_path, grid_data):
+    out = str(tmp_path / 'run')
+    os.makedirs(out)
+    with open(os.path.join(out, 'metrics.jsonl'), 'w') as f:
+        f.write('{"step": 50, "old": 1}\n{"step": 100, "old": 1}\n{"step": 1')  # killed mid-line, no checkpoint
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium')
+    fit.train('gcbc', cfg, grid_data, out, resume='auto', progress=False, log=lambda *_: None)
+    lines = _strict_lines(os.path.join(out, 'metrics.jsonl'))
+    assert [m['step'] for m in lines] == [50, 100, 150, 200] and not any('old' in m for m in lines)
+
+
+def _edit_config(out: str, edit) -> None:
+    path = os.path.join(out, 'config.json')
+    meta = json.load(open(path))
+    edit(meta)
+    with open(path, 'w') as f:
+        json.dump(meta, f)
+
+
+def test_an_edited_config_json_is_named_and_checkpoints_stay(tmp_path, grid_data, grid_file, capsys):
+    out = str(tmp_path / 'run')
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium')
+    fit.train('gcbc', cfg, grid_data, out, progress=False, log=lambda *_: None)
+    original = open(os.path.join(out, 'config.json')).read()
+    listing = sorted(os.listdir(os.path.join(out, 'checkpoints')))
+
+    def restore():
+        with open(os.path.join(out, 'config.json'), 'w') as f:
+            f.write(original)
+
+    def both(meta):
+        meta['obs_size'] = 29
+        meta['config']['env'] = 'antmaze-large'
+
+    cases = [
+        (both, r"config.json disagrees with the config saved in checkpoint 200 \(config.json vs checkpoint\): "
+               r"env: 'antmaze-large' vs 'pointmaze-medium'; obs_size: 29 vs 2"),
+        (lambda m: m.pop('config'), r"config.json: no 'config' \(is this a run folder"),
+        (lambda m: m['config'].update(batch_size='abc'), r"GCBCConfig.batch_size must be int; got 'abc'"),
+        (lambda m: m['config'].update(actor_hidden=[0, -3]), r'actor_hidden must be one or more layer widths'),
+    ]
+    for edit, message in cases:
+        _edit_config(out, edit)
+        with pytest.raises(ValueError, match=message):
+            fit.load(out, log=lambda *_: None)
+        for argv in (['evaluate', '--checkpoint', out, '--dataset', grid_file],
+                     ['train', '--dataset', grid_file, '--resume', '--steps', '300', '--out', out]):
+            assert cli.main(argv) == 2
+            lines = _error_lines(capsys.readouterr().err)
+            assert len(lines) == 1 and re.search(message, lines[0]), (argv, lines)
+        assert sorted(os.listdir(os.path.join(out, 'checkpoints'))) == listing  # nothing moved aside
+        assert not os.path.exists(os.path.join(out, 'checkpoints_unreadable'))
+        restore()
+    assert fit.load(out, log=lambda *_: None).step == 200
+
+
+# ------------------------------------------------------------------------------ damaged datasets
+def test_damaged_or_odd_dataset_files_are_named(tmp_path, grid_file, grid_data, capsys):
+    raw = open(grid_file, 'rb').read()
+    flipped = bytearray(raw)
+    for i in range(len(raw) // 3, len(raw) // 3 + 64):  # inside the compressed observations
+        flipped[i] ^= 0xFF
+    complex_obs = dict(grid_data, observations=grid_data['observations'].astype(np.complex64))
+    cases = {'empty.npz': (b'', r'empty file \(0 bytes\)'),
+             'text.npz': (b'observations,actions\n1,2\n', r"not an .npz archive .*starts with b'obse'"),
+             'flipped.npz': (bytes(flipped), r'is damaged \((BadZipFile|error|ValueError)'),
+             'cut.npz': (raw[: len(raw) // 2], r'damaged .npz archive \(BadZipFile'),
+             'complex.npz': (complex_obs, r'observations has dtype complex64; expected real numbers')}
+    for name, (content, message) in cases.items():
+        path = str(tmp_path / name)
+        if isinstance(content, dict):
+            np.savez(path, **content)
+        else:
+            with open(path, 'wb') as f:
+                f.write(content)
+        with pytest.raises(dsm.DatasetError, match=message):
+            dsm.read_ogbench(path)
+        out = str(tmp_path / f'run-{name}')
+        assert cli.main(['train', '--dataset', path, '--env', 'pointmaze-medium', '--out', out]) == 2
+        lines = _error_lines(capsys.readouterr().err)
+        assert len(lines) == 1 and re.search(message, lines[0]), (name, lines)
+        assert not os.path.exists(out)  # nothing left behind
+    with pytest.raises(dsm.DatasetError, match='observations has dtype complex64'):
+        dsm.to_device(complex_obs)  # arrays handed over in code are held to the same rule
+
+
+def test_a_dataset_named_for_another_maze_is_refused(tmp_path, grid_file, capsys):
+    named = str(tmp_path / 'pointmaze-medium-navigate-v0.npz')
+    os.replace(grid_file, named)
+    out = str(tmp_path / 'run')
+    assert cli.main(['train', '--dataset', named, '--env', 'pointmaze-large', '--out', out]) == 2
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and 'named for pointmaze-medium, not pointmaze-large' in lines[0]
+    assert not os.path.exists(out)
+
+
+# ----------------------------------------------------------------------- full and read-only disks
+@pytest.fixture
+def small_disk(tmp_path):
+    """``mount(size) -> folder``: a tmpfs of ``size`` (a real full disk); ``remount_ro(folder)``.
+    Skips where mounting is not allowed (the suite runs as root in CI, where it is)."""
+    mounted = []
+
+    def mount(size: str) -> str:
+        folder = tmp_path / f'disk{len(mounted)}'
+        folder.mkdir()
+        p = subprocess.run(['mount', '-t', 'tmpfs', '-o', f'size={size}', 'tmpfs', str(folder)], capture_output=True)
+        if p.returncode:
+            pytest.skip(f'cannot mount a tmpfs here: {p.stderr.decode().strip()}')
+        mounted.append(str(folder))
+        return str(folder)
+
+    def remount_ro(folder: str) -> None:
+        subprocess.run(['mount', '-o', 'remount,ro', folder], check=True)
+
+    mount.remount_ro = remount_ro
+    yield mount
+    for folder in mounted:
+        subprocess.run(['umount', '-l', folder], check=False)
+
+
+def _fill(folder: str, leave: int = 0) -> str:
+    """Fill the file system of ``folder`` up to ``leave`` free bytes; returns the filler's path."""
+    import shutil  # pylint: disable=import-outside-toplevel
+
+    path = os.path.join(folder, 'filler')
+    with open(path, 'wb') as f:
+        try:
+            while shutil.disk_usage(folder).free > leave:
+                f.write(b'\0' * min(1 << 20, max(shutil.disk_usage(folder).free - leave, 1)))
+                f.flush()
+        except OSError:
+            pass
+    return path
+
+
+def test_disk_full_during_training_leaves_the_last_checkpoint_and_resumes(small_disk, grid_file, capsys,
+                                                                         monkeypatch):
+    disk = small_disk('64m')
+    out = os.path.join(disk, 'run')
+    argv = ['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--out', out,
+            '--set', 'checkpoint_every=50']
+    real_save, saves = ckpt.Checkpointer.save, []
+
+    def save_then_fill(self, step, state, config):
+        if saves:  # the disk fills up (another job) after the first checkpoint
+            _fill(disk)
+        saves.append(step)
+        real_save(self, step, state, config)
+
+    monkeypatch.setattr(ckpt.Checkpointer, 'save', save_then_fill)
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    lines = _error_lines(err)
+    assert len(lines) == 1 and 'cannot write checkpoint 100' in lines[0] and 'No space left' in lines[0], err
+    assert sorted(os.listdir(os.path.join(out, 'checkpoints'))) == ['50']  # no temporary folder left
+    steps = [m['step'] for m in _strict_lines(os.path.join(out, 'metrics.jsonl'))]  # whole lines only
+    assert steps == sorted(set(steps))
+    monkeypatch.setattr(ckpt.Checkpointer, 'save', real_save)
+    os.remove(os.path.join(disk, 'filler'))
+    assert cli.main(['train', '--dataset', grid_file, '--resume', '--out', out]) == 0
+    assert fit.checkpoint_steps(out)[-1] == 200
+
+
+def test_no_room_and_read_only_outputs_fail_before_the_work(small_disk, grid_file, grid_data, capsys, tmp_path):
+    disk = small_disk('64m')
+    run_dir = os.path.join(disk, 'run')
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=100)
+    fit.train('gcbc', cfg, grid_data, run_dir, progress=False, log=lambda *_: None)
+    before = {os.path.relpath(os.path.join(d, n), run_dir) for d, _, ns in os.walk(run_dir) for n in ns}
+    # no room: checkpoints of a new run, a collection
+    _fill(disk, leave=200_000)
+    cases = [(['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--out',
+               os.path.join(disk, 'new')], r'checkpoints of .* MiB needs about .* MiB in .*new; only .* MiB are free'),
+             (['collect', '--env', 'antmaze-medium', '--out', os.path.join(disk, 'd.npz')],
+              r'the collected dataset needs about .* MiB')]
+    for argv, message in cases:
+        assert cli.main(argv) == 2
+        lines = _error_lines(capsys.readouterr().err)
+        assert len(lines) == 1 and re.search(message, lines[0]), lines
+    os.remove(os.path.join(disk, 'filler'))
+    # read-only: resume, evaluate, collect all stop at once
+    small_disk.remount_ro(disk)
+    cases = [['train', '--dataset', grid_file, '--resume', '--steps', '200', '--out', run_dir],
+             ['evaluate', '--checkpoint', run_dir, '--dataset', grid_file],
+             ['collect', '--env', 'pointmaze-medium', '--out', os.path.join(disk, 'd.npz')]]
+    for argv in cases:
+        assert cli.main(argv) == 2
+        lines = _error_lines(capsys.readouterr().err)
+        assert len(lines) == 1 and 'Read-only file system' in lines[0], lines
+    after = {os.path.relpath(os.path.join(d, n), run_dir) for d, _, ns in os.walk(run_dir) for n in ns}
+    assert after == before and not os.path.exists(os.path.join(disk, 'new'))
+    # a file where a folder should be
+    blocker = str(tmp_path / 'file')
+    open(blocker, 'w').close()
+    assert cli.main(['collect', '--env', 'pointmaze-medium', '--out', blocker + '/x.npz']) == 2
+    assert 'is a file, not a folder' in _error_lines(capsys.readouterr().err)[0]
+
+
+# ------------------------------------------------------------------- arguments checked up front
+def test_bad_arguments_are_named_before_any_work(tmp_path, grid_data, grid_file, capsys, monkeypatch):
+    run_dir = str(tmp_path / 'run')
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=100)
+    fit.train('gcbc', cfg, grid_data, run_dir, progress=False, log=lambda *_: None)
+
+    def no_loading(*a, **k):
+        raise AssertionError('loaded a checkpoint before checking the arguments')
+
+    monkeypatch.setattr(fit, 'load', no_loading)
+    ev = ['evaluate', '--checkpoint', run_dir, '--dataset', grid_file]
+    cases = [(ev + ['--tasks', '0'], r'task'),
+             (ev + ['--tasks', '1', '1'], r'ProtocolConfig.tasks repeats task\(s\) \[1\]'),
+             (ev + ['--shift', 'bogus'], r'bogus'),
+             (ev + ['--delta', '-1'], r'MapConfig.delta must be a finite number > 0; got -1'),
+             (['evaluate', '--checkpoint', run_dir, '--dataset', str(tmp_path / 'missing.npz')],
+              r'--dataset .*missing.npz: no such file'),
+             (['render', '--env', 'pointmaze-medium', '--deltas', '0', '--out', str(tmp_path / 'r.png')],
+              r'--deltas must be finite numbers > 0; got \[0.0\]'),
+             (['rollouts', '--env', 'pointmaze-medium', '--envs', '0', '--out', str(tmp_path / 'ro')],
+              r'--envs must be >= 1; got 0'),
+             (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--out', str(tmp_path / 'q'),
+               '--set', 'q_hidden=0,-3'], r'AQMConfig.q_hidden must be one or more layer widths >= 1'),
+             (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--out', str(tmp_path / 'q'),
+               '--set', 'batch_size=abc'], r"batch_size \(int\): cannot read 'abc'")]
+    for argv, message in cases:
+        assert cli.main(argv) == 2, argv
+        lines = _error_lines(capsys.readouterr().err)
+        assert len(lines) == 1 and re.search(message, lines[0]), (argv, lines)
+    assert not os.path.exists(tmp_path / 'q') and not os.path.exists(tmp_path / 'ro')
+    assert not os.path.exists(os.path.join(run_dir, 'eval'))

@@ -175,9 +175,9 @@ def test_unreadable_newest_checkpoint_falls_back(tmp_path, capsys):
             with open(os.path.join(root, f), 'wb') as fh:
                 fh.write(b'garbage')
     logs = []
-    with pytest.warns(RuntimeWarning, match='falling back'):
-        t = fit.load(out, log=logs.append)
-    assert t.step == 100 and 'checkpoint 200' in logs[0]
+    t = fit.load(out, log=logs.append)
+    assert t.step == 100 and len(logs) == 1 and logs[0].startswith('warning: checkpoint 200')
+    assert os.path.isdir(os.path.join(ck, '200'))  # a reader leaves the folder as it is
     agent = t.agent
     a = jax.vmap(lambda o, g: agent.controller(agent.aux, o, g, 0, None))(jnp.zeros((3, 2)), jnp.ones((3, 2)))
     assert a.shape == (3, 2)

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from aqm_mjx import config as cfg_lib
 from aqm_mjx.agent import plan as planning
 from aqm_mjx.config import option
 from aqm_mjx.mapping.graph import Graph
@@ -44,6 +45,7 @@ class AgentConfig:
                                '0: 8 on a CPU, 256 elsewhere')
 
     def __post_init__(self):
+        cfg_lib.check_types(self)
         if not (self.kappa >= 0):
             raise ValueError(f'AgentConfig.kappa must be >= 0 (inf disables pruning); got {self.kappa}')
         if not self.switch_radius > 0:

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs
+from aqm_mjx import envs, files
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import expert
 from aqm_mjx.envs import mazes
@@ -320,9 +320,18 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     return CollectResult(train=train, val=val, config=cfg, stats=stats)
 
 
-def check_output(path: str, overwrite: bool = False) -> str:
+def estimated_bytes(cfg: 'CollectConfig') -> int:
+    """Upper bound of the two files' size (float32 observations, actions, qpos and qvel, before compression)."""
+    c = cfg.resolved()
+    env = envs.make(c.env)
+    width = env.obs_size + env.action_size + env.mj_model.nq + env.mj_model.nv + 1
+    return 4 * width * c.steps * (c.episodes + c.val_episodes)
+
+
+def check_output(path: str, overwrite: bool = False, cfg: Optional['CollectConfig'] = None) -> str:
     """Check an output path before any work: an ``.npz`` whose file and ``-val`` twin do not exist
-    (unless ``overwrite``). Returns the ``-val`` path."""
+    (unless ``overwrite``), in a folder that can be written, with room for a collection of ``cfg``
+    when it is given. Returns the ``-val`` path."""
     if not path.endswith('.npz'):
         raise ValueError(f'output file must end in .npz (OGBench layout); got {path!r}')
     vpath = ds_io.val_path(path)
@@ -330,6 +339,10 @@ def check_output(path: str, overwrite: bool = False) -> str:
         for p in (path, vpath):
             if os.path.exists(p):
                 raise FileExistsError(f'{p} exists; pass overwrite=True (--overwrite) to replace it')
+    if os.path.isdir(path):
+        raise files.OutputError(f'{path} is a folder; give a file name ending in .npz')
+    files.check_writable(os.path.dirname(os.path.abspath(path)), 0 if cfg is None else estimated_bytes(cfg),
+                         'the collected dataset')
     return vpath
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import tempfile
 import zipfile
+import zlib
 from typing import Optional
 
 import jax
@@ -32,6 +33,14 @@ class DatasetError(ValueError):
 
 
 # ---------------------------------------------------------------------------------------------- files
+def _check_real(a, key: str, name: str, bool_ok: bool = False) -> None:
+    """Real numbers only: complex values would lose their imaginary part, strings and objects are no data."""
+    dt = np.asarray(a).dtype
+    if not (np.issubdtype(dt, np.floating) or np.issubdtype(dt, np.integer) or (bool_ok and dt == np.bool_)):
+        raise DatasetError(f'{name}: {key} has dtype {dt}; expected real numbers (float or int'
+                           f'{" or bool" if bool_ok else ""})')
+
+
 def validate(data: dict, obs_size: Optional[int] = None, action_size: Optional[int] = None, name: str = 'dataset') -> None:
     """Check raw arrays in OGBench's file layout. Raises :class:`DatasetError`."""
     for k in REQUIRED:
@@ -51,11 +60,11 @@ def validate(data: dict, obs_size: Optional[int] = None, action_size: Optional[i
         raise DatasetError(f'{name}: observations are {obs.shape[1]}-d but the environment expects {obs_size}')
     if action_size is not None and act.shape[1] != action_size:
         raise DatasetError(f'{name}: actions are {act.shape[1]}-d but the environment expects {action_size}')
+    _check_real(term, 'terminals', name, bool_ok=True)
     for k in ('observations', 'actions') + OPTIONAL:
         if k in data:
             a = data[k]
-            if not np.issubdtype(a.dtype, np.number):
-                raise DatasetError(f'{name}: {k} has dtype {a.dtype}, expected a number type')
+            _check_real(a, k, name)
             bad = ~np.isfinite(a)
             if bad.any():
                 row = int(np.argwhere(bad)[0][0])
@@ -80,10 +89,21 @@ def read_ogbench(path: str, obs_size: Optional[int] = None, action_size: Optiona
     """
     if not os.path.exists(path):
         raise DatasetError(f'{path}: no such file')
+    if os.path.isdir(path):
+        raise DatasetError(f'{path}: a folder, not an .npz file')
+    try:
+        with open(path, 'rb') as fh:
+            head = fh.read(4)
+    except OSError as e:
+        raise DatasetError(f'{path}: cannot be read ({e.strerror or e})') from None
+    if not head:
+        raise DatasetError(f'{path}: empty file (0 bytes); was it cut short while being written or copied?')
+    if head not in (b'PK\x03\x04', b'PK\x05\x06'):
+        raise DatasetError(f'{path}: not an .npz archive (a zip file starts with PK; this one starts with {head!r})')
     try:
         f = np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, OSError, ValueError) as e:
-        raise DatasetError(f'{path}: not a readable .npz file ({e})') from e
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
+        raise DatasetError(f'{path}: damaged .npz archive ({type(e).__name__}: {e})') from None
     if not isinstance(f, np.lib.npyio.NpzFile):
         raise DatasetError(f'{path}: expected an .npz archive of named arrays, got a single array')
     out = {}
@@ -96,15 +116,15 @@ def read_ogbench(path: str, obs_size: Optional[int] = None, action_size: Optiona
                 continue
             try:
                 a = f[k]
-            except ValueError as e:  # object arrays need pickle, which we never allow
-                raise DatasetError(f'{path}: {k} is an object array (it would need pickle to load); '
-                                   'save plain numeric arrays') from e
-            if k == 'terminals':
-                a = a.astype(bool, copy=False)
-            else:
-                if not np.issubdtype(a.dtype, np.number):
-                    raise DatasetError(f'{path}: {k} has dtype {a.dtype}, expected a number type')
-                a = a.astype(np.float32, copy=False)
+            except ValueError as e:
+                if 'pickle' in str(e):  # object arrays need pickle, which we never allow
+                    raise DatasetError(f'{path}: {k} is an object array (it would need pickle to load); '
+                                       'save plain numeric arrays') from None
+                raise DatasetError(f'{path}: {k} is damaged ({e})') from None
+            except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as e:  # flipped or missing bytes
+                raise DatasetError(f'{path}: {k} is damaged ({type(e).__name__}: {e})') from None
+            _check_real(a, k, path, bool_ok=k == 'terminals')
+            a = a.astype(bool if k == 'terminals' else np.float32, copy=False)
             out[k] = a
     validate(out, obs_size, action_size, name=path)
     return out
@@ -125,6 +145,9 @@ def write_ogbench(path: str, data: dict) -> None:
     try:
         with os.fdopen(fd, 'wb') as fh:
             np.savez_compressed(fh, **arrays)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # as open() would create it (mkstemp makes 0600)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -199,3 +222,16 @@ def infer_env(path: str) -> tuple[str, Optional[str]]:
         raise ValueError(f'cannot infer the environment from {path!r}; pass --env (e.g. antmaze-medium)') from None
     style = parts[2] if len(parts) > 2 and parts[2] in ('navigate', 'stitch', 'explore') else None
     return name, style
+
+
+def check_env_name(path: str, env_name: str) -> None:
+    """Refuse a file whose OGBench name says another maze than ``env_name``
+    (``pointmaze-medium-navigate-v0.npz`` with ``--env pointmaze-large``); a file named otherwise
+    is not judged by its name."""
+    try:
+        named, _ = infer_env(path)
+    except ValueError:
+        return
+    if named != env_name:
+        raise DatasetError(f'{path} is named for {named}, not {env_name}: pass --env {named} (or rename the file '
+                           'if its name is wrong)')

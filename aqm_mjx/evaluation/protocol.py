@@ -38,9 +38,14 @@ class ProtocolConfig:
                                         "'no-pruning', 'flat', 'kappa=X'")
 
     def __post_init__(self):
+        cfg_lib.check_types(self)
         cfg_lib.check_positive_int(self, 'episodes', 'envs')
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 0:
             raise ValueError(f'ProtocolConfig.horizon must be an integer >= 0 (0: the limit); got {self.horizon!r}')
+        repeated = sorted({t for t in self.tasks if self.tasks.count(t) > 1})
+        if repeated:
+            raise ValueError(f'ProtocolConfig.tasks repeats task(s) {repeated}: each task id once '
+                             '(--episodes sets how often a task runs)')
         agent_specs(1.0, self.ablations)  # validates the ablation names
 
 

@@ -72,6 +72,7 @@ class AQMConfig(LoopConfig):
     def __post_init__(self):
         super().__post_init__()
         cfg_lib.check_positive_int(self, 'n_components', 'component_size', 'subgoal_offset')
+        cfg_lib.check_widths(self, 'q_hidden', 'pi_hidden')
         for f in dataclasses.fields(self):
             if f.metadata.get('choices'):
                 cfg_lib.check_choice(type(self).__name__, f.name, getattr(self, f.name), f.metadata['choices'])

@@ -6,14 +6,22 @@ Layout of a run folder::
     DIR/metrics.jsonl          one JSON object per logged step
     DIR/checkpoints/<step>/    Orbax: ``state`` (every array needed to continue) and ``config``
 
-A checkpoint Orbax did not finish is never listed (it writes to a temporary name first); one that
-is listed but cannot be read is skipped for the previous one, with a warning.
+A checkpoint Orbax did not finish is never listed (it writes to a temporary name first). One that
+is listed but cannot be read is skipped for the previous one with one warning line; a resuming run
+also moves it aside to ``DIR/checkpoints_unreadable/<step>`` (kept, not deleted) so that training
+can write that step again. Orbax's own log lines and background-thread output during a restore are
+kept from the terminal: its errors reach the user as one line each.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
-import warnings
+import shutil
+import sys
+import tempfile
+import threading
 from typing import Any, Optional
 
 import orbax.checkpoint as ocp
@@ -24,7 +32,8 @@ class CheckpointError(RuntimeError):
 
 
 def _manager(directory: str, keep: Optional[int] = None, create: bool = True) -> ocp.CheckpointManager:
-    opts = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create)
+    # a writer (create=True, under the run folder's lock) removes what a killed save left behind
+    opts = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, cleanup_tmp_directories=create)
     return ocp.CheckpointManager(os.path.abspath(os.path.join(directory, 'checkpoints')), options=opts)
 
 
@@ -33,20 +42,50 @@ class Checkpointer:
 
     def __init__(self, directory: str, keep: Optional[int] = 3, create: bool = True):
         self.directory = directory
-        self._mngr = _manager(directory, keep, create)
+        self._failed = False
+        with quiet():
+            self._mngr = _manager(directory, keep, create)
 
     def steps(self) -> list[int]:
-        return sorted(self._mngr.all_steps())
+        with quiet():
+            return sorted(self._mngr.all_steps())
 
     def save(self, step: int, state: Any, config: dict) -> None:
-        """Write checkpoint ``step`` and wait until it is complete on disk."""
-        self._mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                                           config=ocp.args.JsonSave(config)), force=True)
-        self._mngr.wait_until_finished()
+        """Write checkpoint ``step`` and wait until it is complete on disk. A failed write (disk
+        full, read-only) leaves no temporary folder behind and raises :class:`CheckpointError`
+        with one line saying why; the checkpoints already there are untouched."""
+        try:
+            with quiet():
+                self._mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),
+                                                                   config=ocp.args.JsonSave(config)), force=True)
+                self._mngr.wait_until_finished()
+        except Exception as e:  # pylint: disable=broad-except  (Orbax and TensorStore raise many kinds)
+            self._failed = True
+            with quiet():
+                try:  # let Orbax's threads end before cleaning up after them
+                    self._mngr.wait_until_finished()
+                except Exception:  # pylint: disable=broad-except
+                    pass
+            _silence_leftovers()
+            root = os.path.join(self.directory, 'checkpoints')
+            for name in os.listdir(root) if os.path.isdir(root) else []:
+                if name.startswith(f'{int(step)}.orbax-checkpoint-tmp'):
+                    shutil.rmtree(os.path.join(root, name), ignore_errors=True)
+            raise CheckpointError(f'cannot write checkpoint {step} in {root}: {one_line(e)}') from None
 
-    def restore(self, template: Any, step: Optional[int] = None, log=print) -> tuple[int, Any, dict]:
+    def saved_meta(self, step: int) -> dict:
+        """The config saved inside checkpoint ``step`` (without reading its arrays)."""
+        with quiet():
+            out = self._mngr.restore(int(step), args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+        return dict(out['config'])
+
+    def restore(self, template: Any, step: Optional[int] = None, log=print,
+                set_aside: bool = False) -> tuple[int, Any, dict]:
         """Restore ``step`` (default: the newest readable one) into the structure of ``template``.
 
+        Args:
+            set_aside: move each unreadable checkpoint newer than the one restored to
+                ``DIR/checkpoints_unreadable/`` (a resuming writer; readers leave the folder alone).
         Returns:
             (step, state, config). Raises :class:`CheckpointError` when none can be read.
         """
@@ -56,17 +95,84 @@ class Checkpointer:
         errors = []
         for s in candidates:
             try:
-                out = self._mngr.restore(s, args=ocp.args.Composite(state=ocp.args.StandardRestore(template),
-                                                                    config=ocp.args.JsonRestore()))
+                with quiet():
+                    out = self._mngr.restore(s, args=ocp.args.Composite(state=ocp.args.StandardRestore(template),
+                                                                        config=ocp.args.JsonRestore()))
             except Exception as e:  # pylint: disable=broad-except  (any unreadable checkpoint: try the previous)
-                msg = f'checkpoint {s} in {self.directory} is unreadable ({type(e).__name__}: {str(e)[:200]})'
+                msg = f'checkpoint {s} in {self.directory} is unreadable ({one_line(e)})'
                 errors.append(msg)
                 if step is None:
-                    warnings.warn(msg + '; falling back to the previous one', RuntimeWarning, stacklevel=2)
-                    log(f'warning: {msg}; falling back to the previous one')
+                    if set_aside:
+                        msg += f'; moved to {self.set_aside(s)}'
+                    log(f'warning: {msg}; trying the previous one')
                 continue
             return s, out['state'], dict(out['config'])
         raise CheckpointError('; '.join(errors))
 
+    def set_aside(self, step: int) -> str:
+        """Move checkpoint ``step`` out of the manager's folder (a new name if one is taken)."""
+        dest_dir = os.path.join(self.directory, 'checkpoints_unreadable')
+        os.makedirs(dest_dir, exist_ok=True)
+        dest, k = os.path.join(dest_dir, str(step)), 1
+        while os.path.exists(dest):
+            dest, k = os.path.join(dest_dir, f'{step}.{k}'), k + 1
+        shutil.move(os.path.join(self.directory, 'checkpoints', str(step)), dest)
+        with quiet():
+            self._mngr.reload()
+        return dest
+
     def close(self):
-        self._mngr.close()
+        """Release the manager; after a failed save, whatever Orbax still raises is dropped (the
+        failure was already reported)."""
+        with quiet():
+            try:
+                self._mngr.close()
+            except Exception:  # pylint: disable=broad-except
+                if not self._failed:
+                    raise
+
+
+def one_line(err: BaseException, limit: int = 200) -> str:
+    """``Type: first line of the message`` (Orbax and TensorStore errors run over many lines)."""
+    text = str(err).strip().splitlines()
+    return f'{type(err).__name__}: {text[0][:limit] if text else ""}'
+
+
+def _silence_leftovers() -> None:
+    """After a failed save Orbax's worker threads and futures can still fail later (``Event loop is
+    closed``, ``Future exception was never retrieved``): the run is stopping with its own one-line
+    error, so those reports are dropped from then on."""
+    logging.getLogger('asyncio').setLevel(logging.CRITICAL + 1)
+    logging.getLogger('absl').setLevel(logging.CRITICAL + 1)
+    threading.excepthook = lambda args: None
+
+
+@contextlib.contextmanager
+def quiet():
+    """Keep Orbax's and TensorStore's output off the terminal for the duration: absl/orbax log
+    records, exceptions printed by background threads, and what C++ writes to file descriptor 2.
+    The caller turns any exception into its own one-line message."""
+    loggers = [logging.getLogger(n) for n in ('absl', 'orbax', 'jax._src.distributed')]
+    levels = [lg.level for lg in loggers]
+    hook = threading.excepthook
+    try:
+        sys.stderr.flush()
+        saved_fd = os.dup(2)
+    except (OSError, ValueError):
+        saved_fd = None
+    sink = tempfile.TemporaryFile() if saved_fd is not None else None
+    try:
+        for lg in loggers:
+            lg.setLevel(logging.CRITICAL + 1)
+        threading.excepthook = lambda args: None
+        if sink is not None:
+            os.dup2(sink.fileno(), 2)
+        yield
+    finally:
+        if saved_fd is not None:
+            os.dup2(saved_fd, 2)
+            os.close(saved_fd)
+            sink.close()
+        threading.excepthook = hook
+        for lg, lv in zip(loggers, levels):
+            lg.setLevel(lv)

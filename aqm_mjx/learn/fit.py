@@ -10,6 +10,7 @@ and ``checkpoints/<step>/``; :func:`load` rebuilds a trained method from the fol
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -89,10 +90,75 @@ def _meta(method: str, cfg, obs_size: int, action_size: int, dataset_path: Optio
 
 
 def read_meta(out: str) -> tuple[methods.Method, Any, dict]:
-    """``(method entry, config, meta)`` of a run folder's ``config.json``."""
-    meta = files.read_json(os.path.join(out, 'config.json'))
-    method = methods.get(meta.get('method', 'aqm'))
-    return method, method.from_dict(meta['config']), meta
+    """``(method entry, config, meta)`` of a run folder's ``config.json``; a damaged or edited file
+    is an error that names the file and the field."""
+    path = os.path.join(out, 'config.json')
+    meta = files.read_json(path)
+    return _parse_meta(meta, path)
+
+
+def _parse_meta(meta, where: str) -> tuple[methods.Method, Any, dict]:
+    if not isinstance(meta, dict):
+        raise ValueError(f'{where}: expected a JSON object, not {type(meta).__name__}')
+    missing = [k for k in ('config', 'obs_size', 'action_size') if k not in meta]
+    if missing:
+        raise ValueError(f'{where}: no {", ".join(map(repr, missing))} (is this a run folder written by aqm-mjx '
+                         'train?)')
+    for k in ('obs_size', 'action_size'):
+        if isinstance(meta[k], bool) or not isinstance(meta[k], int) or meta[k] < 1:
+            raise ValueError(f'{where}: {k} must be an integer >= 1; got {meta[k]!r}')
+    try:
+        method = methods.get(meta.get('method', 'aqm'))
+        return method, method.from_dict(meta['config']), meta
+    except (TypeError, ValueError) as e:
+        raise ValueError(f'{where}: {e}') from None
+
+
+def meta_differences(a: dict, b: dict, ignore: tuple = ('steps',)) -> list[str]:
+    """Fields in which two run metas (``config.json`` and a checkpoint's) differ, as
+    ``'field: A vs B'`` (the config's fields flattened beside method and shapes)."""
+    def flat(m):
+        cfg = _parse_meta(m, 'meta')[1].to_dict()
+        return {'method': m.get('method', 'aqm'), 'obs_size': m['obs_size'], 'action_size': m['action_size'], **cfg}
+
+    fa, fb = flat(a), flat(b)
+    return [f'{k}: {fa.get(k)!r} vs {fb.get(k)!r}' for k in sorted(set(fa) | set(fb))
+            if k not in ignore and fa.get(k) != fb.get(k)]
+
+
+def check_resumable(out: str, method: str, cfg, obs_size: int, action_size: int) -> None:
+    """Refuse to continue the run in ``out`` under another config: every differing field is named.
+    A larger ``steps`` extends the run; a smaller one than its newest checkpoint is refused. Does
+    nothing when ``out`` holds no checkpoint."""
+    done = checkpoint_steps(out)
+    if not done:
+        return
+    _, _, meta = read_meta(out)
+    diff = meta_differences(meta, _meta(method, cfg, obs_size, action_size, None))
+    if diff:
+        raise ValueError(f'{out} holds a run with other settings (saved vs asked): {"; ".join(diff)}. Choose '
+                         f'another --out, or drop the changes to continue it')
+    if cfg.steps < max(done):
+        raise ValueError(f'{out} is trained to step {max(done)}, past the {cfg.steps} asked for; ask for '
+                         f'--steps >= {max(done)} or choose another --out')
+
+
+def check_against_checkpoint(out: str, meta: dict, saver: ckpt.Checkpointer, step: Optional[int] = None) -> None:
+    """Refuse a ``config.json`` that disagrees with the config saved inside checkpoint ``step``
+    (default: the newest), naming every differing field. A checkpoint whose config cannot be read
+    is left to :meth:`~aqm_mjx.learn.checkpoint.Checkpointer.restore` (it falls back)."""
+    steps = saver.steps() if step is None else [step]
+    if not steps:
+        return
+    try:
+        saved = saver.saved_meta(steps[-1])
+    except Exception:  # pylint: disable=broad-except  (a torn checkpoint: restore decides)
+        return
+    diff = meta_differences(meta, saved)
+    if diff:
+        raise ValueError(f'{out}/config.json disagrees with the config saved in checkpoint {steps[-1]} '
+                         f'(config.json vs checkpoint): {"; ".join(diff)}. Was config.json edited? The '
+                         'checkpoint\'s copy is what the parameters were trained with')
 
 
 def _trim_metrics(path: str, step: int) -> None:
@@ -135,7 +201,8 @@ def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, re
         data: raw arrays from :func:`aqm_mjx.data.dataset.read_ogbench` or a collector.
         out: run folder (``config.json``, ``metrics.jsonl``, ``checkpoints/``).
         resume: False: a new run (refused when ``out`` holds checkpoints); True: continue from the
-            newest readable checkpoint; ``'auto'``: continue when there are checkpoints, else start.
+            newest readable checkpoint (from the start, with the saved config, when a run was stopped
+            before its first one); ``'auto'``: continue when there are checkpoints, else start.
             A run already at its last step is restored and returned without training.
         steps: override the total number of updates.
         key: the initialisation key (default ``PRNGKey(cfg.seed)``; the pipeline passes its train
@@ -143,6 +210,11 @@ def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, re
     Returns:
         :class:`Trained` with the final state.
     """
+    with files.run_lock(out):  # one writer per run folder
+        return _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, key)
+
+
+def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, key) -> Trained:
     method = methods.get(method) if isinstance(method, str) else method
     ds = ds_io.to_device(data)  # validates, and refuses a dataset without transitions
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
@@ -151,9 +223,24 @@ def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, re
     done = checkpoint_steps(out)
     if resume == 'auto':
         resume = bool(done)
+    if resume and not done:  # killed before its first checkpoint: start over with the saved settings
+        if cfg is None:
+            if not os.path.exists(cfg_path):
+                raise FileNotFoundError(f'{out} holds no run to resume (no config.json, no checkpoint); start a '
+                                        'new run without --resume')
+            method, cfg, _ = read_meta(out)
+        log(f'{out} has no checkpoint yet: starting from the beginning')
+        resume = False
     if resume:
-        saved_method, cfg, meta = read_meta(out)
-        method = saved_method
+        if cfg is not None:  # a caller with a config of its own (aqm-mjx run): the saved run's, steps aside
+            check_resumable(out, method.name, cfg, obs_size, action_size)
+            steps = cfg.steps if steps is None else steps
+        method, cfg, meta = read_meta(out)
+        saver = ckpt.Checkpointer(out, keep=None, create=False)
+        try:
+            check_against_checkpoint(out, meta, saver)
+        finally:
+            saver.close()
         if (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
             raise ValueError(f'{out} was trained on {meta["obs_size"]}-d observations and {meta["action_size"]}-d '
                              f'actions; this dataset has {obs_size} and {action_size}')
@@ -163,19 +250,21 @@ def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, re
         raise ValueError('a config is needed for a new run')
     if steps is not None:
         cfg = dataclasses.replace(cfg, steps=int(steps))
-    os.makedirs(out, exist_ok=True)
     learner = method.make(cfg, obs_size, action_size)
     meta = _meta(method.name, cfg, obs_size, action_size, dataset_path)
-    saver = ckpt.Checkpointer(out, keep=cfg.keep)
     state = learner.init(jax.random.PRNGKey(cfg.seed) if key is None else key)
+    saver = None
     if resume:
-        step, state, _ = saver.restore(state, log=log)
+        saver = ckpt.Checkpointer(out, keep=cfg.keep)
+        step, state, _ = saver.restore(state, log=log, set_aside=True)
         log(f'resumed {out} at step {step}' if step < cfg.steps else f'{out} is complete at step {step}')
     start = int(state.step)
-    _trim_metrics(metrics_path, start)  # a fresh start drops what a killed run left
-    files.write_json(cfg_path, meta)
     if start % cfg.updates_per_call:
         raise ValueError(f'checkpoint step {start} is not a multiple of updates_per_call {cfg.updates_per_call}')
+    _check_room([out], state, cfg, start)  # before anything is written to the folder
+    saver = saver or ckpt.Checkpointer(out, keep=cfg.keep)
+    _trim_metrics(metrics_path, start)  # a fresh start drops what a killed run left
+    files.write_json(cfg_path, meta)
     chunk = jax.jit(chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
     state, step = _host_loop(chunk, state, ds, cfg, start, [out], [saver], [meta], [set()], None,
                              f'train {method.name} {cfg.preset}', progress)
@@ -213,6 +302,30 @@ def _diverged(cfg, step: int, what: list[str], who: str, saved: list[int]) -> Di
                          f'look for extreme values in the dataset')
 
 
+def _check_room(outs: list[str], state, cfg, start: int) -> None:
+    """Room for the checkpoints still to come in each folder (``keep`` of them plus the one being
+    written), before training starts rather than at its first save."""
+    if start >= cfg.steps:
+        return
+    size = sum(x.nbytes for x in jax.tree.leaves(state))
+    for o in outs:
+        files.check_writable(o, size * (cfg.keep + 1), f'{cfg.keep} checkpoints of {size / 2 ** 20:.2f} MiB')
+
+
+def _append(f, line: str) -> None:
+    """Append one line to an open metrics file; a failed write is cut off again (no torn line)."""
+    pos = f.tell()
+    try:
+        f.write(line)
+        f.flush()
+    except OSError as e:
+        try:
+            f.truncate(pos)
+        except OSError:
+            pass
+        raise files.OutputError(f'cannot append to {f.name}: {e.strerror or e}') from None
+
+
 def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], savers: list, metas: list[dict],
                skip: list[set], seeds: Optional[int], desc: str, progress: bool):
     """The host side of training, shared by :func:`train` (``seeds=None``: one unvmapped state) and
@@ -248,8 +361,7 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
                    + [f'state{p}' for p, ok in finite.items() if not pick(ok, i)] for i, ln in enumerate(lines)]
             if any(bad) or step % cfg.log_every == 0 or step == cfg.steps:
                 for mf, ln in zip(metric_files, lines):
-                    mf.write(_strict_json(ln) + '\n')
-                    mf.flush()
+                    _append(mf, _strict_json(ln) + '\n')
             if any(bad):
                 i = next(i for i, b in enumerate(bad) if b)
                 raise _diverged(cfg, step, bad[i], '' if seeds is None else f' (seed folder {outs[i]})',
@@ -261,6 +373,12 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
                 for i, (saver, done) in enumerate(zip(savers, skip)):
                     if step not in done:
                         saver.save(step, jax.tree.map(lambda x, i=i: pick(x, i), state), metas[i])
+    except BaseException:
+        if bar is not None:  # end the bar's line: the error that follows gets its own
+            bar.close()
+            bar.fp.write('\n')
+            bar = None
+        raise
     finally:
         for mf in metric_files:
             mf.close()
@@ -283,7 +401,8 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
     ordinary runs. The seeds are stacked on a leading axis and ``chunk_step`` runs under
     ``jax.vmap``; the numbers are those of ``S`` separate runs up to float reassociation.
 
-    Resume: folders complete at ``cfgs[0].steps`` are loaded, not trained. Otherwise training
+    Resume: folders complete at ``cfgs[0].steps`` are loaded, not trained (a config may ask for more
+    steps than the folders were started with, nothing else may differ). Otherwise training
     continues from the newest step that every folder has a checkpoint of (from the start when
     there is none); a checkpoint a folder already holds is not written again (the run is
     deterministic, so it is the same state), and metric lines past the restart step are dropped.
@@ -303,7 +422,14 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
         raise ValueError(f'the run folders repeat: {outs}')
     if any(dataclasses.replace(c, seed=0) != dataclasses.replace(cfgs[0], seed=0) for c in cfgs):
         raise ValueError('train_seeds: the configs differ in more than their seed; train them separately')
-    cfg = cfgs[0]
+    with contextlib.ExitStack() as stack:
+        for o in outs:
+            stack.enter_context(files.run_lock(o))  # one writer per run folder
+        return _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log)
+
+
+def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) -> list[Trained]:
+    n, cfg = len(outs), cfgs[0]
     ds = ds_io.to_device(data)
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
     done = [checkpoint_steps(o) for o in outs]
@@ -313,20 +439,18 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
             if meta.get('method') != method.name or (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
                 raise ValueError(f'{o} holds a {meta.get("method")} run on {meta["obs_size"]}-d observations; '
                                  f'this is {method.name} on {obs_size}-d: choose another folder')
-            if dataclasses.replace(saved, seed=0) != dataclasses.replace(cfg, seed=0):
-                raise ValueError(f'{o} was trained with another config than this one; choose another folder')
+            if dataclasses.replace(saved, seed=0, steps=cfg.steps) != dataclasses.replace(cfg, seed=0):
+                raise ValueError(f'{o} was trained with another config than this one (more steps may be asked '
+                                 f'for, nothing else); choose another folder')
     if all(d and max(d) >= cfg.steps for d in done):
         log(f'{method.name}: {n} seed(s) complete at step {cfg.steps}, not trained again')
         return [load(o, log=log) for o in outs]
-    common = sorted(set.intersection(*map(set, done)) if all(done) else set())
-    start = common[-1] if common else 0
     learner = method.make(cfg, obs_size, action_size)
     states = [learner.init(k) for k in keys]
-    for o in outs:
-        os.makedirs(o, exist_ok=True)
+    _check_room(outs, states[0], cfg, 0)  # (the complete case returned above) before anything is written
     savers = [ckpt.Checkpointer(o, keep=cfg.keep) for o in outs]
+    start, states = _restore_common(savers, states, done, log)
     if start:
-        states = [s.restore(st, step=start, log=log)[1] for s, st in zip(savers, states)]
         log(f'{method.name}: resuming {n} seed(s) at step {start}')
     metas = [_meta(method.name, c, obs_size, action_size, dataset_path) for c in cfgs]
     for o, m in zip(outs, metas):
@@ -341,13 +465,34 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
             for i, (c, meta) in enumerate(zip(cfgs, metas))]
 
 
+def _restore_common(savers: list, templates: list, done: list[list[int]], log) -> tuple[int, list]:
+    """Restore every folder at the newest step all of them hold (``(0, templates)`` when there is
+    none). A checkpoint that cannot be read is moved aside in its folder and the next common step
+    is tried, so a resume always makes progress. ``done`` is updated in place."""
+    while True:
+        common = sorted(set.intersection(*map(set, done)) if all(done) else set())
+        if not common:
+            return 0, templates
+        start, states = common[-1], []
+        for saver, template, d in zip(savers, templates, done):
+            try:
+                states.append(saver.restore(template, step=start, log=log)[1])
+            except ckpt.CheckpointError as e:
+                log(f'warning: {e}; moved to {saver.set_aside(start)}')
+                d.remove(start)
+                break
+        else:
+            return start, states
+
+
 def load(out: str, step: Optional[int] = None, log=print) -> Trained:
     """A run folder for evaluation: its ``config.json`` and the newest readable checkpoint."""
     method, cfg, meta = read_meta(out)
-    learner = method.make(cfg, meta['obs_size'], meta['action_size'])
-    template = learner.init(jax.random.PRNGKey(0))
     saver = ckpt.Checkpointer(out, keep=None, create=False)
     try:
+        check_against_checkpoint(out, meta, saver, step)
+        learner = method.make(cfg, meta['obs_size'], meta['action_size'])
+        template = learner.init(jax.random.PRNGKey(0))
         s, state, _ = saver.restore(template, step=step, log=log)
     finally:
         saver.close()

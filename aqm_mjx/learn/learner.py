@@ -59,6 +59,7 @@ class LoopConfig:
     seed: int = option(0, 'initialisation seed of a training run started on its own')
 
     def __post_init__(self):
+        cfg_lib.check_types(self)
         cfg_lib.check_positive_int(self, 'steps', 'batch_size', 'updates_per_call', 'log_every', 'checkpoint_every',
                                    'keep')
         for name in ('steps', 'log_every', 'checkpoint_every'):

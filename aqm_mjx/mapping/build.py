@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import functools
 import time
 from typing import Any
@@ -60,9 +61,12 @@ class MapConfig:
     iwe_batch_size: int = option(1024, "iwe-batches: candidates per batch (the paper's 1024)")
 
     def __post_init__(self):
+        cfg_lib.check_types(self)
         cfg_lib.check_positive_int(self, 'max_keypoints', 'candidates', 'iwe_batches', 'iwe_batch_size')
-        if not (self.delta > 0 and self.tau >= 0):
-            raise ValueError(f'MapConfig: delta must be > 0 and tau >= 0; got delta={self.delta}, tau={self.tau}')
+        if not (math.isfinite(self.delta) and self.delta > 0):
+            raise ValueError(f'MapConfig.delta must be a finite number > 0; got {self.delta}')
+        if not (math.isfinite(self.tau) and self.tau >= 0):
+            raise ValueError(f'MapConfig.tau must be a finite number >= 0 (0: twice delta); got {self.tau}')
         cfg_lib.check_choice('MapConfig', 'selector', self.selector, tuple(SELECTORS))
 
     @property

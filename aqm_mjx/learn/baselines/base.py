@@ -56,6 +56,7 @@ class BaselineConfig(LoopConfig):
     def __post_init__(self):
         super().__post_init__()
         cfg_lib.check_positive_int(self, 'subgoal_offset')
+        cfg_lib.check_widths(self, 'actor_hidden', 'value_hidden')
         for f in dataclasses.fields(self):
             if f.metadata.get('choices'):
                 cfg_lib.check_choice(type(self).__name__, f.name, getattr(self, f.name), f.metadata['choices'])
