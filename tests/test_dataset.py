@@ -1,5 +1,7 @@
 """OGBench file I/O (against ogbench.utils.load_dataset) and the goal sampler's statistics."""
 
+import os
+
 import jax
 import numpy as np
 import pytest
@@ -84,6 +86,9 @@ def test_failed_write_keeps_the_old_file(tmp_path):
         dsm.write_ogbench(path, dict(fake_raw(), terminals=np.zeros(240, bool)))
     assert open(path, 'rb').read() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ['d.npz']  # no temporary left behind
+    umask = os.umask(0)
+    os.umask(umask)
+    assert os.stat(path).st_mode & 0o777 == 0o666 & ~umask  # as open() creates files, not mkstemp's 0600
 
 
 def test_goal_sampler_mixture_offsets_and_boundaries():

@@ -204,7 +204,7 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
     assert cli.main(['evaluate', '--checkpoint', str(out), '--shift', 'close-1-1', '--out', str(ev)]) == 2
     assert "unknown shift 'close-1-1'" in capsys.readouterr().err
     assert cli.main(['evaluate', '--checkpoint', str(out), '--dataset', str(tmp_path / 'nope.npz')]) == 2
-    assert 'not found' in capsys.readouterr().err
+    assert 'nope.npz: no such file' in capsys.readouterr().err
     assert cli.main(['evaluate', '--checkpoint', str(tmp_path / 'none')]) == 2
     assert 'no such file' in capsys.readouterr().err
     assert cli.main(['evaluate', '--checkpoint', str(out), '--tasks', '9', '--out', str(ev)]) == 2

@@ -22,6 +22,7 @@ import shutil
 import sys
 import tempfile
 import threading
+import warnings
 from typing import Any, Optional
 
 import orbax.checkpoint as ocp
@@ -33,7 +34,8 @@ class CheckpointError(RuntimeError):
 
 def _manager(directory: str, keep: Optional[int] = None, create: bool = True) -> ocp.CheckpointManager:
     # a writer (create=True, under the run folder's lock) removes what a killed save left behind
-    opts = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, cleanup_tmp_directories=create)
+    opts = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, cleanup_tmp_directories=create,
+                                        enable_async_checkpointing=False)  # saves end (or fail) before returning
     return ocp.CheckpointManager(os.path.abspath(os.path.join(directory, 'checkpoints')), options=opts)
 
 
@@ -61,17 +63,22 @@ class Checkpointer:
                 self._mngr.wait_until_finished()
         except Exception as e:  # pylint: disable=broad-except  (Orbax and TensorStore raise many kinds)
             self._failed = True
+            _silence_leftovers()
             with quiet():
-                try:  # let Orbax's threads end before cleaning up after them
+                try:
                     self._mngr.wait_until_finished()
                 except Exception:  # pylint: disable=broad-except
                     pass
-            _silence_leftovers()
-            root = os.path.join(self.directory, 'checkpoints')
-            for name in os.listdir(root) if os.path.isdir(root) else []:
-                if name.startswith(f'{int(step)}.orbax-checkpoint-tmp'):
-                    shutil.rmtree(os.path.join(root, name), ignore_errors=True)
-            raise CheckpointError(f'cannot write checkpoint {step} in {root}: {one_line(e)}') from None
+            self._remove_partial()
+            raise CheckpointError(f'cannot write checkpoint {step} in {self.directory}/checkpoints: '
+                                  f'{one_line(e)}') from None
+
+    def _remove_partial(self) -> None:
+        """Delete the temporary folders of unfinished saves (only a writer, under the folder's lock)."""
+        root = os.path.join(self.directory, 'checkpoints')
+        for name in os.listdir(root) if os.path.isdir(root) else []:
+            if '.orbax-checkpoint-tmp' in name:
+                shutil.rmtree(os.path.join(root, name), ignore_errors=True)
 
     def saved_meta(self, step: int) -> dict:
         """The config saved inside checkpoint ``step`` (without reading its arrays)."""
@@ -130,6 +137,8 @@ class Checkpointer:
             except Exception:  # pylint: disable=broad-except
                 if not self._failed:
                     raise
+        if self._failed:  # Orbax's threads may have gone on writing after the failure was caught
+            self._remove_partial()
 
 
 def one_line(err: BaseException, limit: int = 200) -> str:
@@ -145,6 +154,8 @@ def _silence_leftovers() -> None:
     logging.getLogger('asyncio').setLevel(logging.CRITICAL + 1)
     logging.getLogger('absl').setLevel(logging.CRITICAL + 1)
     threading.excepthook = lambda args: None
+    sys.unraisablehook = lambda unraisable: None  # 'Exception ignored in: ...' from their event loops
+    warnings.filterwarnings('ignore', message='coroutine .* was never awaited', category=RuntimeWarning)
 
 
 @contextlib.contextmanager

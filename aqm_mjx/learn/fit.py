@@ -307,7 +307,7 @@ def _check_room(outs: list[str], state, cfg, start: int) -> None:
     written), before training starts rather than at its first save."""
     if start >= cfg.steps:
         return
-    size = sum(x.nbytes for x in jax.tree.leaves(state))
+    size = int(1.1 * sum(x.nbytes for x in jax.tree.leaves(state))) + 2 ** 17  # Orbax's metadata: ~100 KiB each
     for o in outs:
         files.check_writable(o, size * (cfg.keep + 1), f'{cfg.keep} checkpoints of {size / 2 ** 20:.2f} MiB')
 
@@ -373,12 +373,6 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
                 for i, (saver, done) in enumerate(zip(savers, skip)):
                     if step not in done:
                         saver.save(step, jax.tree.map(lambda x, i=i: pick(x, i), state), metas[i])
-    except BaseException:
-        if bar is not None:  # end the bar's line: the error that follows gets its own
-            bar.close()
-            bar.fp.write('\n')
-            bar = None
-        raise
     finally:
         for mf in metric_files:
             mf.close()
