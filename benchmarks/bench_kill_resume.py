@@ -1,7 +1,7 @@
 """``kill -9`` at random moments of ``aqm-mjx train``, each followed by a resume: does the run
 always end bit-identical to one that was never interrupted?
 
-    python benchmarks/bench_kill_resume.py [--kills 10] [--steps 600] [--seed 0] [--out DIR]
+    python benchmarks/bench_kill_resume.py [--kills 10] [--steps 3000] [--seed 0] [--out DIR]
 
 A reference run trains uninterrupted. A second run in another folder is started, killed with
 SIGKILL after a random delay (anywhere from start-up and compilation to the middle of a checkpoint
@@ -36,6 +36,16 @@ def _cmd(dataset: str, out: str, steps: int, resume: bool) -> list[str]:
                   '--set', 'log_every=50', '--set', 'checkpoint_every=50', '--set', 'keep=3']
 
 
+def _last_step(path: str) -> int:
+    """The last whole metric line's step (0 when there is none yet)."""
+    try:
+        with open(path) as f:
+            lines = [ln for ln in f if ln.endswith('\n')]
+        return json.loads(lines[-1])['step'] if lines else 0
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
 def _leaves(out: str) -> tuple[list[bytes], int]:
     from aqm_mjx.learn import fit  # pylint: disable=import-outside-toplevel
 
@@ -46,7 +56,7 @@ def _leaves(out: str) -> tuple[list[bytes], int]:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--kills', type=int, default=10)
-    p.add_argument('--steps', type=int, default=600)
+    p.add_argument('--steps', type=int, default=3000)
     p.add_argument('--seed', type=int, default=0, help='seed of the kill delays')
     p.add_argument('--out', default=None, help='work folder (default: a temporary one)')
     a = p.parse_args(argv)
@@ -62,22 +72,40 @@ def main(argv=None) -> int:
     env = dict(os.environ, JAX_PLATFORMS='cpu')
     ref, cut = os.path.join(work, 'ref'), os.path.join(work, 'cut')
     t0 = time.perf_counter()
+    subprocess.run(_cmd(dataset, os.path.join(work, 'short'), 50, False), check=True, env=env, capture_output=True)
+    t_start = time.perf_counter() - t0  # start-up, compile and one chunk
+    t0 = time.perf_counter()
     subprocess.run(_cmd(dataset, ref, a.steps, False), check=True, env=env, capture_output=True)
     t_ref = time.perf_counter() - t0
-    print(f'reference: {a.steps} updates uninterrupted in {t_ref:.1f} s (start-up and compile included)')
+    print(f'reference: {a.steps} updates uninterrupted in {t_ref:.1f} s ({t_start:.1f} s to start, compile and run '
+          f'the first 50)')
+    # Kills by progress, not by the clock (this machine's speed varies): kill k waits until the run
+    # has logged step ~k/(kills+1) of the way, then a random 0-0.4 s more (mid-chunk, mid-save:
+    # every chunk ends in a checkpoint); every third kill instead lands at a random moment of
+    # start-up, restore or compilation.
     rng = random.Random(a.seed)
+    metrics = os.path.join(cut, 'metrics.jsonl')
     for k in range(a.kills):
-        delay = rng.uniform(0.5, t_ref)
         resume = bool(fit.checkpoint_steps(cut))
         proc = subprocess.Popen(_cmd(dataset, cut, a.steps, resume), env=env, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
-        time.sleep(delay)
+        t0 = time.perf_counter()
+        if k % 3 == 2:
+            moment = 'start-up'
+            time.sleep(rng.uniform(0.3, t_start))
+        else:
+            target = (k + 1) * a.steps // (a.kills + 1)
+            moment = f'past step {target}'
+            while proc.poll() is None and _last_step(metrics) < target:
+                time.sleep(0.01)
+            time.sleep(rng.uniform(0.0, 0.4))
+        delay = time.perf_counter() - t0
         ended = proc.poll() is not None
         proc.send_signal(signal.SIGKILL)
         proc.wait()
         have = fit.checkpoint_steps(cut)
-        print(f'kill {k + 1:2d}: after {delay:5.1f} s of a {"resumed" if resume else "fresh"} run; newest checkpoint '
-              f'{have[-1] if have else "none"}' + (' (the run had already ended)' if ended else ''))
+        print(f'kill {k + 1:2d}: {moment:<15} after {delay:5.1f} s of a {"resumed" if resume else "fresh"} run; newest '
+              f'checkpoint {have[-1] if have else "none"}' + (' (the run had already ended)' if ended else ''))
     resume = bool(fit.checkpoint_steps(cut))
     done = subprocess.run(_cmd(dataset, cut, a.steps, resume), env=env, capture_output=True, text=True)
     if done.returncode:
