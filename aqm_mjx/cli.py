@@ -182,10 +182,7 @@ def cmd_train(a):
     if not a.resume:
         env = envs.make(env_name)
         obs_size, action_size = env.obs_size, env.action_size
-        over = {'env': env_name, 'seed': a.seed}
-        if style == 'explore':
-            over['policy_goals'] = 'random'  # AQM: uniform random goals on explore datasets
-        cfg = method.preset(a.preset, **over).with_overrides([s[len('train.'):] if s.startswith('train.') else s
+        cfg = method.preset(a.preset, style=style, env=env_name, seed=a.seed).with_overrides([s[len('train.'):] if s.startswith('train.') else s
                                                                for s in a.set or []])
     data = dataset.read_ogbench(a.dataset, obs_size=obs_size, action_size=action_size, add_info=False)
     print(f'dataset {a.dataset}: {len(data["terminals"])} states, {int(data["terminals"].sum())} trajectories')
@@ -230,7 +227,16 @@ def cmd_run(a):
     from aqm_mjx import envs, files, pipeline, run  # pylint: disable=import-outside-toplevel
 
     envs.parse_name(a.env)
-    cfg = pipeline.RunConfig.preset(a.preset, method=a.method, env=a.env, seed=a.seed).with_overrides(_overrides(a))
+    style = 'navigate'  # what the run collects; a --dataset says its own in its OGBench name
+    if a.dataset:
+        from aqm_mjx.data import dataset  # pylint: disable=import-outside-toplevel
+
+        try:
+            style = dataset.infer_env(a.dataset)[1]
+        except ValueError:
+            style = None  # not an OGBench name: no style rule
+    cfg = pipeline.RunConfig.preset(a.preset, method=a.method, env=a.env, seed=a.seed,
+                                    style=style).with_overrides(_overrides(a))
     out = a.out or os.path.join('runs', a.env)
     print(f'aqm-mjx run: {a.env}, {cfg.method} {cfg.train.preset} preset ({cfg.train.steps} updates of batch '
           f'{cfg.train.batch_size}), {cfg.protocol.episodes} evaluation episodes per task, on {jax.devices()[0]}; '

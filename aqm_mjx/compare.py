@@ -39,7 +39,7 @@ DEFAULT_METHODS = ('aqm', 'gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw')
 
 
 def method_configs(env_name: str, names: Sequence[str], preset: str, overrides: Sequence[str] = (),
-                   explore: bool = False) -> dict[str, RunConfig]:
+                   style: Optional[str] = None) -> dict[str, RunConfig]:
     """``{method: RunConfig}`` for a comparison, every override checked before any work.
 
     ``overrides`` are ``section.field=value`` pairs (``field=value`` where the field is unique), given
@@ -68,9 +68,7 @@ def method_configs(env_name: str, names: Sequence[str], preset: str, overrides: 
     out = {}
     for n in names:
         # the methods alone by default (AQM's ablations triple its evaluation): protocol.ablations=... adds them
-        cfg = RunConfig.preset(preset, method=n, env=env_name).with_overrides(['protocol.ablations='])
-        if explore and 'policy_goals' in {f.name for f in dataclasses.fields(cfg.train)}:
-            cfg = cfg.with_overrides(['train.policy_goals=random'])  # AQM on explore data: uniform random goals
+        cfg = RunConfig.preset(preset, method=n, env=env_name, style=style).with_overrides(['protocol.ablations='])
         try:
             cfg = cfg.with_overrides(shared)
         except ValueError as e:
@@ -213,7 +211,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         except ValueError:
             pass  # not an OGBench name: --style stands
     names = list(method_names)
-    cfgs = method_configs(env_name, names, preset, overrides, explore=style == 'explore')
+    cfgs = method_configs(env_name, names, preset, overrides, style=style)
     env = envs.make(env_name)
     variants = run.variants_for(env.maze, shift)
     for c in cfgs.values():

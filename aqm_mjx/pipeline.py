@@ -62,13 +62,16 @@ class RunConfig:
                              f'{method.config.__name__}')
 
     @classmethod
-    def preset(cls, name: str, method: str = 'aqm', env: Optional[str] = None, seed: int = 0) -> 'RunConfig':
-        """Preset ``name`` (``ci``, ``cpu``, ``paper``) for ``method`` on ``env``."""
+    def preset(cls, name: str, method: str = 'aqm', env: Optional[str] = None, seed: int = 0,
+               style: Optional[str] = None) -> 'RunConfig':
+        """Preset ``name`` (``ci``, ``cpu``, ``paper``) for ``method`` on ``env``, trained on data of
+        ``style`` (the method's rules for it: AQM draws uniform random goals on ``explore`` data)."""
         if name not in PRESETS:
             raise ValueError(f'unknown run preset {name!r}; expected one of {", ".join(PRESETS)}')
         p = PRESETS[name]
         over = dict(seed=seed) if env is None else dict(env=env, seed=seed)
-        return cls(method=method, train=methods.get(method).preset(p['train'], **over), map=MapConfig(**p['map']),
+        return cls(method=method, train=methods.get(method).preset(p['train'], style=style, **over),
+                   map=MapConfig(**p['map']),
                    agent=AgentConfig(**p['agent']), protocol=proto.ProtocolConfig(**p['protocol']))
 
     def to_dict(self) -> dict:
@@ -111,6 +114,9 @@ def stage_keys(key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
 
 def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Optional[Callable] = None):
     """Build ``run(key, dataset) -> dict`` for ``env`` (a :class:`aqm_mjx.envs.MazeEnv`).
+
+    The dataset's style rules live in ``cfg`` (``RunConfig.preset(..., style='explore')``, as
+    ``aqm-mjx run`` builds it from the dataset's name), since the dataset arrays do not say it.
 
     Args:
         variants: ``{name: grid}`` layouts to evaluate on (default: the maze's layout).

@@ -167,3 +167,29 @@ def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(t
     # the folder holds one comparison: other settings are refused, naming what differs
     with pytest.raises(ValueError, match='overrides'):
         compare.compare('pointmaze-medium', ['gcbc'], 2, out, preset='ci', dataset=path, overrides=over[:1], **QUIET)
+
+
+def test_the_explore_rule_reaches_every_entry_point(tmp_path, monkeypatch):
+    """AQM draws uniform random policy goals on explore data (paper App. 10.3) in ``train``, ``run``
+    (both paths build their config the same way) and ``compare``; other methods and other styles
+    keep theirs, and an explicit override wins."""
+    from aqm_mjx import pipeline, run  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.data import dataset as dsm  # pylint: disable=import-outside-toplevel
+
+    assert pipeline.RunConfig.preset('ci', style='explore').train.policy_goals == 'random'
+    assert pipeline.RunConfig.preset('ci', style='navigate').train.policy_goals == 'trajectory'
+    cfgs = compare.method_configs('antmaze-medium', ['aqm', 'gcivl'], 'ci', style='explore')
+    assert cfgs['aqm'].train.policy_goals == 'random' and not hasattr(cfgs['gcivl'].train, 'policy_goals')
+    data = synthetic.grid_walks(synthetic.one_way_grid(5), episodes=20, steps=20, seed=1)
+    path = str(tmp_path / 'pointmaze-medium-explore-v0.npz')
+    dsm.write_ogbench(path, {k: data[k] for k in ('observations', 'actions', 'terminals')})
+    seen = []
+    monkeypatch.setattr(run, 'run_stepwise', lambda cfg, out, **kw: seen.append(cfg.train.policy_goals))
+    for extra, want in (([], 'random'), (['--set', 'train.policy_goals=trajectory'], 'trajectory')):
+        assert cli.main(['run', '--env', 'pointmaze-medium', '--preset', 'ci', '--dataset', path,
+                         '--out', str(tmp_path / 'r')] + extra) == 0
+        assert seen[-1] == want
+    out = str(tmp_path / 't')
+    assert cli.main(['train', '--dataset', path, '--preset', 'ci', '--steps', '50', '--set', 'updates_per_call=50',
+                     '--set', 'log_every=50', '--set', 'checkpoint_every=50', '--out', out]) == 0
+    assert json.load(open(os.path.join(out, 'config.json')))['config']['policy_goals'] == 'random'

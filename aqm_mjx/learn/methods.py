@@ -11,7 +11,7 @@ so a new method is an entry here (its config, presets and ``make``) and nothing 
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from typing import Callable, Optional
 
 from aqm_mjx.learn import aqm
 from aqm_mjx.learn.baselines import crl, gcbc, gciql, gcivl, hiql, qrl, saw
@@ -28,6 +28,8 @@ class Method:
         make: ``(config, obs_size, action_size) -> Learner``.
         defaults: config fields this entry sets before the preset's overrides (an ablation's objective).
         summary: one line for listings.
+        style_defaults: ``{dataset style: fields}`` set for data of that style (AQM on ``explore``
+            data: uniform random policy goals, the paper's App. 10.3), before ``overrides``.
     """
 
     name: str
@@ -35,10 +37,12 @@ class Method:
     make: Callable[..., Learner]
     defaults: dict = dataclasses.field(default_factory=dict)
     summary: str = ''
+    style_defaults: dict = dataclasses.field(default_factory=dict)
 
-    def preset(self, preset: str, **overrides):
-        """The config of preset ``preset`` with this entry's defaults, then ``overrides``."""
-        return self.config.preset(preset, **{**self.defaults, **overrides})
+    def preset(self, preset: str, style: Optional[str] = None, **overrides):
+        """The config of preset ``preset`` with this entry's defaults, those of dataset ``style``
+        (``navigate``, ``stitch``, ``explore``; None: none), then ``overrides``."""
+        return self.config.preset(preset, **{**self.defaults, **self.style_defaults.get(style, {}), **overrides})
 
     def from_dict(self, d: dict):
         return self.config.from_dict(d)
@@ -64,12 +68,13 @@ def names() -> list[str]:
     return list(METHODS)
 
 
+AQM_EXPLORE = {'explore': {'policy_goals': 'random'}}  # paper App. 10.3: uniform random goals on explore data
 register(Method('aqm', aqm.AQMConfig, aqm.make, {'objective': 'saw'},
-                'AQM: IQE quasimetric (QRL), Q-AWR target and Q-SAW main policies'))
+                'AQM: IQE quasimetric (QRL), Q-AWR target and Q-SAW main policies', AQM_EXPLORE))
 register(Method('aqm-awr', aqm.AQMConfig, aqm.make, {'objective': 'awr'},
-                "AQM's quasimetric with a Q-AWR policy on the goal (ablation)"))
+                "AQM's quasimetric with a Q-AWR policy on the goal (ablation)", AQM_EXPLORE))
 register(Method('aqm-bc', aqm.AQMConfig, aqm.make, {'objective': 'bc'},
-                "AQM's quasimetric with a behaviour-cloned policy (ablation)"))
+                "AQM's quasimetric with a behaviour-cloned policy (ablation)", AQM_EXPLORE))
 register(Method('gcbc', gcbc.GCBCConfig, gcbc.make, summary='GCBC: goal-conditioned behaviour cloning'))
 register(Method('gcivl', gcivl.GCIVLConfig, gcivl.make, summary='GCIVL: implicit V-learning value, AWR actor'))
 register(Method('gciql', gciql.GCIQLConfig, gciql.make, summary='GCIQL: IQL Q and V, DDPG+BC actor'))
