@@ -33,14 +33,21 @@ def tiny_config():
          'protocol.tasks=1,2', 'protocol.ablations=flat'])
 
 
-def test_one_program_equals_the_step_by_step_path(tmp_path):
+@pytest.fixture(scope='module')
+def one_program():
+    """``(cfg, env, data, ds, run, single)``: the tiny run and its jitted program, compiled once for
+    the tests of this module that call it unvmapped."""
     cfg = tiny_config()
     env = envs.make('pointmaze-medium')
     data = synthetic.point_walks()
-    ds = ds_io.to_device(data)
-    key = jax.random.PRNGKey(3)
     run = pipeline.make_run(cfg, env)
-    out = jax.device_get(jax.jit(run)(key, ds))
+    return cfg, env, data, ds_io.to_device(data), run, jax.jit(run)
+
+
+def test_one_program_equals_the_step_by_step_path(tmp_path, one_program):
+    cfg, env, data, ds, run, single = one_program
+    key = jax.random.PRNGKey(3)
+    out = jax.device_get(single(key, ds))
     # step by step: the host training loop with its checkpoints, then the map, then the chunked evaluation
     k_train, k_map, k_eval = pipeline.stage_keys(key)
     trained = fit.train('aqm', cfg.train, data, str(tmp_path / 'run'), key=k_train, progress=False,
@@ -62,12 +69,9 @@ def test_one_program_equals_the_step_by_step_path(tmp_path):
     assert set(out['metrics']) >= {'qrl/loss', 'policy/main_loss'}
 
 
-def test_seeds_vmap_in_one_compile_and_match_separate_calls():
-    cfg = tiny_config()
-    env = envs.make('pointmaze-medium')
-    ds = ds_io.to_device(synthetic.point_walks())
+def test_seeds_vmap_in_one_compile_and_match_separate_calls(one_program):
+    _, _, _, ds, run, single = one_program
     traces = []
-    run = pipeline.make_run(cfg, env)
 
     def counted(k, d):
         traces.append(1)
@@ -76,7 +80,6 @@ def test_seeds_vmap_in_one_compile_and_match_separate_calls():
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     many = jax.device_get(jax.jit(jax.vmap(counted, in_axes=(0, None)))(keys, ds))
     assert len(traces) == 1
-    single = jax.jit(run)
     for i in range(2):
         one = jax.device_get(single(keys[i], ds))
         assert int(many['keypoints'][i]) == int(one['keypoints'])
