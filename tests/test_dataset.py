@@ -128,6 +128,26 @@ def test_goal_sampler_mixture_offsets_and_boundaries():
     assert abs(frac.mean() - 0.5) < 0.01
 
 
+def test_saws_subgoal_cap_stops_at_the_goal():
+    """subgoal_cap='goal': s_{min(t + k, goal index)} for current and trajectory goals, the trajectory's
+    end for random goals (SAW's rule, AQM's default); 'end' ignores the goal."""
+    raw = fake_raw(n_traj=20, length=100, with_info=False)
+    raw['observations'][:, 0] = np.arange(len(raw['terminals']))
+    ds = dsm.to_device(raw)
+    mix = dict(p_current=0.2, p_trajectory=0.5, p_random=0.3, geometric=True, discount=0.9, subgoal_offset=25)
+    for cap in ('goal', 'end'):
+        b = goals.sample(ds, jax.random.PRNGKey(2), 20_000, goals.GoalSampling(**mix, subgoal_cap=cap))
+        idx, goal, sub, kind = (np.asarray(x) for x in (b.index, b.goal_index, b.subgoal_index, b.goal_kind))
+        end = idx // 100 * 100 + 99
+        want = np.minimum(idx + 25, np.where((kind == 2) | (cap == 'end'), end, goal))
+        np.testing.assert_array_equal(sub, want)
+        np.testing.assert_array_equal(np.asarray(b.subgoals[:, 0]), sub)
+        if cap == 'goal':  # the rule binds: many trajectory goals lie closer than k
+            assert np.mean(sub[kind == 1] < np.minimum(idx + 25, end)[kind == 1]) > 0.5
+    with pytest.raises(ValueError, match='subgoal_cap'):
+        goals.GoalSampling(subgoal_cap='trajectory')
+
+
 def test_bad_sampling_config():
     with pytest.raises(ValueError, match='sum to 1'):
         goals.GoalSampling(p_current=0.5, p_trajectory=0.6)

@@ -5,7 +5,10 @@ kappa 0 so that budgets are overrun) before the package was split into stage pac
 seeds give the same values afterwards. ``tests/regression_values.json`` holds them. One change was
 intended and recorded: ``aqm-mjx evaluate`` now splits its seed into map and episode keys with
 ``stage_keys`` as ``aqm-mjx run`` does (it used ``PRNGKey(seed)`` for both), so its values now
-equal the step-by-step run's.
+equal the step-by-step run's. When AQM's defaults became SAW's subgoal cap and OGBench's
+initialiser, the test kept the values by asking for the old ones (``subgoal_cap=end``,
+``initializer=lecun``): it checks that the three paths agree and that refactors change nothing,
+not the defaults.
 """
 
 import json
@@ -41,7 +44,8 @@ CASES = {'pointmaze-medium': (synthetic.point_walks, 60), 'antmaze-medium': (ant
 
 def config(env_name, horizon):
     cfg = pipeline.RunConfig.preset('ci', env=env_name, seed=SEED)
-    return cfg.with_overrides(['train.steps=100', 'train.updates_per_call=50', 'train.log_every=50',
+    return cfg.with_overrides(['train.subgoal_cap=end', 'train.initializer=lecun', 'train.steps=100',
+                               'train.updates_per_call=50', 'train.log_every=50',
                                'train.checkpoint_every=50', 'protocol.tasks=1,2', f'protocol.horizon={horizon}',
                                'protocol.ablations=no-pruning,flat'])
 

@@ -84,6 +84,43 @@ def test_config_presets_validation_and_json():
         cfg.with_overrides(['batch_size=abc'])
 
 
+def test_saved_configs_without_new_fields_keep_their_old_behaviour():
+    """Today's defaults are SAW's subgoal cap and OGBench's initialiser; a config saved before those
+    fields existed reads back as what its run was trained with (end cap, flax's init)."""
+    new = aqm.AQMConfig.preset('cpu', env='antmaze-medium')
+    assert (new.subgoal_cap, new.initializer) == ('goal', 'ogbench')
+    assert (new.goal_sampling.subgoal_cap, new.goal_sampling.subgoal_offset) == ('goal', 25)
+    old = {k: v for k, v in new.to_dict().items() if k not in ('subgoal_cap', 'initializer')}
+    assert (aqm.AQMConfig.from_dict(old).subgoal_cap, aqm.AQMConfig.from_dict(old).initializer) == ('end', 'lecun')
+    assert aqm.AQMConfig.from_dict(new.to_dict()) == new
+    assert aqm.AQMConfig.preset('cpu', policy_goals='random', subgoal_cap='end').goal_sampling.subgoal_cap == 'end'
+    with pytest.raises(ValueError, match='initializer: unknown value'):
+        aqm.AQMConfig.preset('cpu', initializer='xavier')
+
+
+@pytest.mark.parametrize('initializer', ['ogbench', 'lecun'])
+def test_initializers_have_the_variance_they_name(initializer):
+    """'ogbench': kernels uniform on +-sqrt(3 s / fan_avg), s = 1 (1e-2 for the policy's mean layer);
+    'lecun': std 1 / sqrt(fan_in); biases 0. Checked on every Dense kernel of an AQM state."""
+    cfg = aqm.AQMConfig.preset('ci', env='antmaze-medium', q_hidden=(256, 256), n_components=256,
+                               pi_hidden=(256, 256), initializer=initializer)
+    state = aqm.make(cfg, obs_size=29, action_size=8).init(jax.random.PRNGKey(0))
+    layers = [('q', k, v) for k, v in state.q_params['params']['encoder'].items() if k.startswith('Dense')] + \
+        [('pi', k, v) for k, v in state.pi_params['main']['params'].items()]
+    for net, name, p in layers:
+        w = np.asarray(p['kernel'])
+        fan_in, fan_out = w.shape
+        assert np.all(np.asarray(p['bias']) == 0)
+        if initializer == 'ogbench':
+            scale = 1e-2 if (net, name) == ('pi', 'Dense_2') else 1.0
+            bound = np.sqrt(3 * scale / ((fan_in + fan_out) / 2))
+            assert np.abs(w).max() <= bound * (1 + 1e-6) and np.abs(w).max() > 0.95 * bound, (net, name)
+            want = bound / np.sqrt(3)
+        else:
+            want = 1 / np.sqrt(fan_in)
+        assert abs(w.std() / want - 1) < 0.1, (net, name, w.std(), want)
+
+
 def test_infer_env():
     assert dsm.infer_env('/data/antmaze-large-navigate-v0.npz') == ('antmaze-large', 'navigate')
     assert dsm.infer_env('pointmaze-medium-explore.npz') == ('pointmaze-medium', 'explore')

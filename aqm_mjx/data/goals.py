@@ -39,7 +39,8 @@ class GoalSampling:
     p_random: float = 0.0  # goal = a uniformly random dataset state
     geometric: bool = True  # trajectory goals: offset ~ Geometric(1 - discount) (else uniform over the rest)
     discount: float = 0.99  # of the geometric offsets
-    subgoal_offset: int = 25  # subgoal = state t + k, clamped at the trajectory's end
+    subgoal_offset: int = 25  # subgoal = state t + k, clamped at subgoal_cap
+    subgoal_cap: str = 'end'  # 'end': the trajectory's end; 'goal': the goal's index (SAW; random goals: end)
 
     def __post_init__(self):
         ps = (self.p_current, self.p_trajectory, self.p_random)
@@ -49,6 +50,8 @@ class GoalSampling:
             raise ValueError(f'discount must be in (0, 1); got {self.discount}')
         if self.subgoal_offset < 1:
             raise ValueError(f'subgoal_offset must be >= 1; got {self.subgoal_offset}')
+        if self.subgoal_cap not in SUBGOAL_CAPS:
+            raise ValueError(f'subgoal_cap must be one of {SUBGOAL_CAPS}; got {self.subgoal_cap!r}')
 
 
 def goal_indices(keys, idx: jax.Array, end: jax.Array, n_states: int, cfg: GoalSampling):
@@ -102,13 +105,14 @@ class Batch:
 
 
 def sample(ds: Dataset, key: jax.Array, batch_size: int, cfg: GoalSampling = GoalSampling()) -> Batch:
-    """Transitions with one goal each and the subgoal ``s_{min(t + k, end)}`` (AQM's sampler);
-    jittable (``batch_size`` and ``cfg`` static)."""
+    """Transitions with one goal each and the subgoal ``s_{min(t + k, cap)}`` (AQM's sampler; cap
+    from ``cfg.subgoal_cap``); jittable (``batch_size`` and ``cfg`` static)."""
     k_idx, k_kind, k_off, k_rand = jax.random.split(key, 4)
     idx = sources(ds, k_idx, batch_size)
     end = ds.traj_end[idx]
     goal, kind = goal_indices((k_kind, k_off, k_rand), idx, end, ds.size, cfg)
-    sub = subgoal_indices(idx, end, cfg.subgoal_offset)
+    capped = cfg.subgoal_cap == 'goal'
+    sub = subgoal_indices(idx, end, cfg.subgoal_offset, goal if capped else None, kind if capped else None)
     obs = ds.observations
     return Batch(observations=obs[idx], actions=ds.actions[idx], next_observations=obs[idx + 1], goals=obs[goal],
                  subgoals=obs[sub], index=idx, goal_index=goal, subgoal_index=sub, goal_kind=kind)

@@ -27,7 +27,7 @@ from aqm_mjx.envs import parse_name
 from aqm_mjx.interface import Agent
 from aqm_mjx.learn import objectives, policy
 from aqm_mjx.learn.learner import Learner, LoopConfig, option
-from aqm_mjx.learn.quasimetric import IQE, lambda_loss, qrl_loss
+from aqm_mjx.learn.quasimetric import INITS, IQE, lambda_loss, qrl_loss
 
 QRL_VARIANTS = ('paper', 'ogbench')
 POLICY_GOALS = ('trajectory', 'random')
@@ -35,6 +35,8 @@ POLICY_GOALS = ('trajectory', 'random')
 # value and teleport large's (its maze is the size of large), both extrapolated by us.
 PUSH_OFFSETS = {'arena': 50.0, 'medium': 50.0, 'large': 125.0, 'teleport': 125.0, 'giant': 250.0}
 OGBENCH_PUSH_OFFSET = 500.0  # OGBench's QRL: 100 * softplus(5 - d / 100)
+# fields added after runs were saved, with the value those runs were trained under
+LEGACY = {'subgoal_cap': 'end', 'initializer': 'lecun'}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +67,11 @@ class AQMConfig(LoopConfig):
                                "'egocentric': goal + that direction in the torso frame", policy.CONDITIONING)
     temperature: float = option(3.0, 'advantage temperature (beta_T = beta_M)')
     weight_clip: float = option(100.0, 'cap on exp(temperature * advantage) (SAW)')
-    subgoal_offset: int = option(25, 'k: subgoal w = s_{min(t + k, end)}')
+    subgoal_offset: int = option(25, 'k: subgoal w = s_{min(t + k, cap)}')
+    subgoal_cap: str = option('goal', "cap of the subgoal index: 'goal' (SAW's s_{min(t+k, goal index)}) or 'end' "
+                              "(the trajectory's end; runs before 2026-11-24)", goals.SUBGOAL_CAPS)
+    initializer: str = option('ogbench', "kernel init: 'ogbench' (variance scaling fan_avg uniform, policy mean "
+                              "x 1e-2; the paper's) or 'lecun' (flax default; runs before 2026-11-24)", INITS)
     policy_goals: str = option('trajectory', "'trajectory': uniform over the rest of it; 'random': explore datasets",
                                POLICY_GOALS)
 
@@ -103,8 +109,18 @@ class AQMConfig(LoopConfig):
     @property
     def goal_sampling(self) -> goals.GoalSampling:
         if self.policy_goals == 'random':
-            return goals.GoalSampling(p_trajectory=0.0, p_random=1.0, subgoal_offset=self.subgoal_offset)
-        return goals.GoalSampling(p_trajectory=1.0, geometric=False, subgoal_offset=self.subgoal_offset)
+            return goals.GoalSampling(p_trajectory=0.0, p_random=1.0, subgoal_offset=self.subgoal_offset,
+                                      subgoal_cap=self.subgoal_cap)
+        return goals.GoalSampling(p_trajectory=1.0, geometric=False, subgoal_offset=self.subgoal_offset,
+                                  subgoal_cap=self.subgoal_cap)
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        """A saved config; a field it lacks because it was written before the field existed takes
+        the value that reproduces what that run did (:data:`LEGACY`), not today's default."""
+        if isinstance(d, dict):
+            d = {**{k: v for k, v in LEGACY.items() if k not in d}, **d}
+        return cfg_lib.from_dict(cls, d)
 
 
 PRESETS = {
@@ -137,8 +153,10 @@ class TrainState:
 
 def make(cfg: AQMConfig, obs_size: int, action_size: int) -> Learner:
     """Build the modules, optimisers and the pure update of an AQM run."""
-    iqe = IQE(hidden=tuple(cfg.q_hidden), n_components=cfg.n_components, component_size=cfg.component_size)
-    pi = policy.GaussianPolicy(action_size=action_size, hidden=tuple(cfg.pi_hidden), const_std=cfg.const_std)
+    iqe = IQE(hidden=tuple(cfg.q_hidden), n_components=cfg.n_components, component_size=cfg.component_size,
+              initializer=cfg.initializer)
+    pi = policy.GaussianPolicy(action_size=action_size, hidden=tuple(cfg.pi_hidden), const_std=cfg.const_std,
+                               initializer=cfg.initializer)
     q_tx = optax.adam(cfg.lr_quasimetric)
     lam_tx = optax.adam(cfg.lr_lambda)
     pi_tx = optax.adam(cfg.lr_policy)

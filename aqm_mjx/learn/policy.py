@@ -27,8 +27,10 @@ import jax
 import jax.numpy as jnp
 
 from aqm_mjx.data.expert import yaw
+from aqm_mjx.learn.quasimetric import kernel_init
 
 CONDITIONING = ('goal', 'direction', 'egocentric')
+MEAN_SCALE = 1e-2  # of the mean layer's initialisation under initializer='ogbench' (OGBench's final_fc_init_scale)
 QUAT = slice(3, 7)  # torso quaternion (w, x, y, z) in an ant observation (qpos[3:7])
 
 
@@ -73,18 +75,21 @@ class GaussianPolicy(nn.Module):
         action_size: A.
         hidden: MLP widths (paper: 3 x 512).
         const_std: a fixed unit standard deviation (OGBench's actors) instead of a learned log-std.
+        initializer: ``'ogbench'`` (variance scaling fan_avg uniform, the mean layer at 1e-2 scale, as
+            OGBench's actors) or ``'lecun'`` (flax's default); :func:`~aqm_mjx.learn.quasimetric.kernel_init`.
     """
 
     action_size: int
     hidden: Sequence[int] = (512, 512, 512)
     const_std: bool = True
+    initializer: str = 'ogbench'
 
     @nn.compact
     def __call__(self, obs, goal_in):
         x = jnp.concatenate([obs, goal_in], axis=-1)
         for h in self.hidden:
-            x = nn.gelu(nn.Dense(h)(x))
-        mean = nn.Dense(self.action_size)(x)
+            x = nn.gelu(nn.Dense(h, kernel_init=kernel_init(self.initializer))(x))
+        mean = nn.Dense(self.action_size, kernel_init=kernel_init(self.initializer, MEAN_SCALE))(x)
         if self.const_std:
             log_std = jnp.zeros_like(mean)
         else:

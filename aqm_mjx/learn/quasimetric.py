@@ -51,17 +51,31 @@ def iqe_distance(zx: jax.Array, zy: jax.Array, n_components: int, alpha: jax.Arr
     return maxmean(iqe_components(zx, zy, n_components), alpha)
 
 
+INITS = ('ogbench', 'lecun')
+
+
+def kernel_init(init: str, scale: float = 1.0):
+    """Dense kernels: ``'ogbench'`` variance scaling (fan_avg, uniform) at ``scale``, OGBench's and so
+    the paper's (Appendix 10.1); ``'lecun'`` flax's default (LeCun normal; ``scale`` ignored), which
+    runs before 2026-11-24 used."""
+    if init not in INITS:
+        raise ValueError(f'unknown init {init!r}; expected one of {INITS}')
+    return nn.initializers.variance_scaling(scale, 'fan_avg', 'uniform') if init == 'ogbench' else \
+        nn.linear.default_kernel_init
+
+
 class Encoder(nn.Module):
     """MLP with GELU then LayerNorm after every hidden layer: ``[..., D] -> [..., N*M]``."""
 
     hidden: Sequence[int] = (512, 512, 512)
     latent: int = 512
+    initializer: str = 'ogbench'
 
     @nn.compact
     def __call__(self, x):
         for h in self.hidden:
-            x = nn.LayerNorm()(nn.gelu(nn.Dense(h)(x)))
-        return nn.Dense(self.latent)(x)
+            x = nn.LayerNorm()(nn.gelu(nn.Dense(h, kernel_init=kernel_init(self.initializer))(x)))
+        return nn.Dense(self.latent, kernel_init=kernel_init(self.initializer))(x)
 
 
 class IQE(nn.Module):
@@ -71,14 +85,16 @@ class IQE(nn.Module):
     Attributes:
         hidden: encoder widths (paper: 3 x 512).
         n_components, component_size: N and M (paper: 512 x 1; OGBench's QRL: 64 x 8).
+        initializer: the encoder's kernel initialiser (:data:`INITS`).
     """
 
     hidden: Sequence[int] = (512, 512, 512)
     n_components: int = 512
     component_size: int = 1
+    initializer: str = 'ogbench'
 
     def setup(self):
-        self.encoder = Encoder(self.hidden, self.n_components * self.component_size)
+        self.encoder = Encoder(self.hidden, self.n_components * self.component_size, self.initializer)
         self.alpha_logit = self.param('alpha_logit', nn.initializers.zeros, ())
 
     def encode(self, x):

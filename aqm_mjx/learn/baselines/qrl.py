@@ -3,8 +3,8 @@ pushed apart through ``100 softplus(5 - d / 100)``, transitions held within one 
 multiplier), a latent dynamics model z' = z + f(z, a) trained to be d-close to the next latent,
 and a DDPG+BC actor on Q(s, a, g) = -d(z + f(z, a), z_g).
 
-Our IQE (:class:`aqm_mjx.learn.quasimetric.IQE`) has OGBench's encoder (GELU, LayerNorm) and
-components; it names the max-mean weights the other way round, which at their common initial
+Our IQE (:class:`aqm_mjx.learn.quasimetric.IQE`) has OGBench's encoder (GELU, LayerNorm, variance
+scaling fan_avg uniform initialisation; flax's LeCun normal before 2026-11-24) and components; it names the max-mean weights the other way round, which at their common initial
 value 0.5 is the same function. The quasimetric is also handed to evaluation, so a QRL model can
 be run by the AQM agent as well as flat.
 """
