@@ -7,9 +7,15 @@ import pytest
 from nbclient import NotebookClient
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parent.parent / 'notebooks').glob('*.ipynb'))
+# The two slowest (about 1.5 minutes each) run with -m slow; their paths are in the default suite:
+# one_program as tests/test_pipeline.py's seed vmap, evaluate_from_checkpoint as
+# tests/test_evaluate.py's learned-agent CLI test.
+SLOW = {'one_program', 'evaluate_from_checkpoint'}
+CASES = [pytest.param(p, id=p.stem, marks=pytest.mark.slow) if p.stem in SLOW else pytest.param(p, id=p.stem)
+         for p in NOTEBOOKS]
 
 
-@pytest.mark.parametrize('path', NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+@pytest.mark.parametrize('path', CASES)
 def test_notebook_runs(path, monkeypatch, tmp_path):
     monkeypatch.setenv('AQM_NOTEBOOK_SCALE', 'ci')
     monkeypatch.delenv('AQM_DATASET', raising=False)
