@@ -123,13 +123,15 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         progress: optional host callback ``progress(step)`` during training.
     Returns:
         ``run(key [2], dataset: Dataset) -> dict`` with ``success [agents, layouts, tasks]`` (rates),
-        ``episode_success [E]`` and ``pruned [E]`` in the order of ``run.episodes.table``,
+        ``episode_success [E]``, ``pruned [E]``, ``legs [E, MAX_LEGS, 3]`` and ``n_legs [E]`` in the
+        order of ``run.episodes.table``,
         ``keypoints`` (count), ``overflow``, ``metrics`` (last chunk's means) and ``params``.
         ``run.episodes`` describes the episodes, ``run.learner`` the method's functions.
     """
     learner = methods.get(cfg.method).make(cfg.train, env.obs_size, env.action_size)
     agent = learner.agent()  # parameters come from training, inside run
-    episodes = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=agent.plans)
+    episodes = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=agent.plans,
+                                   patience=cfg.agent.patience)
     rollout = make_rollout(env, agent, cfg.agent, episodes.steps)
 
     def run(key, ds: ds_io.Dataset) -> dict:
@@ -147,7 +149,8 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         out = rollout(params, graph, proto.table_inputs(episodes, k_eval))
         success = out['success'] > 0
         rates, _ = proto.success_rates(episodes, success, out['pruned'])
-        return dict(success=rates, episode_success=success, pruned=out['pruned'], keypoints=count,
+        return dict(success=rates, episode_success=success, pruned=out['pruned'], legs=out['legs'],
+                    n_legs=out['n_legs'], keypoints=count,
                     overflow=overflow, metrics=metrics, params=params)
 
     run.episodes, run.learner = episodes, learner

@@ -86,7 +86,8 @@ def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig
     sig = json.dumps([trained.method, dataclasses.replace(trained.config, seed=0).to_dict(), run_cfg['map'],
                       run_cfg['agent'], run_cfg['protocol'], sorted(variants)], sort_keys=True)
     if sig not in programs:
-        steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans).steps
+        steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans,
+                              patience=cfg.agent.patience).steps
         programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh())
     return programs[sig]
 

@@ -13,7 +13,7 @@ from aqm_mjx.agent import oracle
 from aqm_mjx.agent.rules import MAX_CUTS, AgentConfig
 from aqm_mjx.data import synthetic
 from aqm_mjx.envs import mazes, shifts
-from aqm_mjx.evaluation import evaluate, protocol
+from aqm_mjx.evaluation import calibration, evaluate, protocol
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import MapConfig, build_map
 
@@ -67,13 +67,47 @@ def test_config_and_episode_table():
     assert (ids == ids[0]).all() and len(set(ids[0].tolist())) == 2 * 2 * 5
     # groups are the cells of the [agents, layouts, tasks] rate table, 5 episodes each
     assert np.bincount(t.group).tolist() == [5] * (4 * 2 * 2) and t.group[5 * 3] == 3
+    assert t.patience.tolist() == [0.0] * len(t.task)  # the fixed rule unless asked
+    stall = protocol.agent_specs(0.5, ('stall=40', 'no-pruning'), patience=25.0)
+    assert stall == [('aqm', 0.5, True, 25.0), ('stall=40', 0.5, True, 40.0), ('no-pruning', np.inf, True, 0.0)]
+    assert protocol.episode_table(stall, 1, [1], 2).patience.tolist() == [25, 25, 40, 40, 0, 0]
     for bad, msg in ((dict(ablations=('greedy',)), 'unknown ablation'), (dict(ablations=('kappa=x',)), 'number'),
                      (dict(episodes=0), 'episodes'), (dict(ablations=('flat', 'flat')), 'repeat'),
-                     (dict(horizon=-1), 'horizon')):
+                     (dict(horizon=-1), 'horizon'), (dict(ablations=('stall=0',)), 'patience must be > 0'),
+                     (dict(ablations=('stall=inf',)), 'finite')):
         with pytest.raises(ValueError, match=msg):
             protocol.ProtocolConfig(**bad)
     with pytest.raises(ValueError, match='selector'):
         MapConfig(selector='kmeans')
+
+
+def test_calibration_by_hand():
+    """Legs (d, steps, longest stall): the fixed rule's kappa is the (1 - q) quantile of steps / d
+    minus 1, the stall rule's patience the (1 - q) quantile of the longest stall; padding, zero-length
+    legs and masked rows are left out; the same numbers under jit."""
+    rng = np.random.default_rng(0)
+    d = rng.uniform(5, 30, 400).astype(np.float32)
+    ratio = rng.uniform(1.0, 3.0, 400).astype(np.float32)
+    stall = rng.integers(0, 60, 400).astype(np.float32)
+    legs = np.stack([d, d * ratio, stall], -1).reshape(20, 20, 3)
+    legs[:, 15:] = -1.0  # 5 unused slots per episode
+    legs[0, 0, 0] = 0.0  # a zero-length leg
+    used = legs.reshape(-1, 3)[np.asarray(calibration.valid(legs)).reshape(-1)]
+    assert len(used) == 20 * 15 - 1
+    c = calibration.calibrate(legs, 0.05)
+    assert int(c['legs']) == 299
+    r = used[:, 1] / used[:, 0]
+    assert float(c['kappa']) == pytest.approx(np.quantile(r, 0.95) - 1, rel=1e-5)
+    assert float(c['patience']) == pytest.approx(np.quantile(used[:, 2], 0.95), rel=1e-5)
+    np.testing.assert_allclose(c['ratio_q'], np.quantile(r, calibration.QUANTILES), rtol=1e-5)
+    # a row mask keeps only those episodes; jit gives the same
+    rows = np.arange(20) < 10
+    cj = jax.jit(lambda x, m: calibration.calibrate(x, 0.05, m))(legs, rows)
+    sub = legs[:10, :15].reshape(-1, 3)[1:]
+    assert int(cj['legs']) == 149
+    assert float(cj['kappa']) == pytest.approx(np.quantile(sub[:, 1] / sub[:, 0], 0.95) - 1, rel=1e-5)
+    with pytest.raises(ValueError, match='false_alarm'):
+        calibration.calibrate(legs, 0.0)
 
 
 def test_success_rates_by_hand():
@@ -199,7 +233,16 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
     assert res['method'] == 'aqm' and res['config']['train']['preset'] == 'ci'
     for png in ('success.png', 'trajectories.png', 'heatmap.png'):
         assert (ev / png).read_bytes()[:4] == b'\x89PNG'
-    assert 'aqm / base' in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert 'aqm / base' in printed
+    # the leg log: per agent and layout, ordered quantiles; the calibration line for no-pruning / base
+    assert set(res['legs']) == set(res['agents'])
+    for a, per_layout in res['legs'].items():
+        for v, row in per_layout.items():
+            q = row['steps_per_d']
+            assert row['legs'] >= 1 and q['q50'] <= q['q90'] <= q['q95'] <= q['q99'], (a, v)
+            assert ('calibrated' in row) == (a == 'no-pruning')
+    assert ('legs of no-pruning / base' in printed) == ('base' in res['legs']['no-pruning'])
     # clear errors
     assert cli.main(['evaluate', '--checkpoint', str(out), '--shift', 'close-1-1', '--out', str(ev)]) == 2
     assert "unknown shift 'close-1-1'" in capsys.readouterr().err

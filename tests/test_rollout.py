@@ -78,8 +78,44 @@ def test_goal_and_start_legs_are_budgeted_by_hand():
     assert (int(b.node), int(b.prev), float(b.budget), int(b.t_edge)) == (1, START, 9.0, 0)
 
 
-def _scenario(agent, n, steps, kappas):
-    """antmaze/pointmaze-medium task 4, the shortest route's corridor cell (5, 3) closed."""
+def test_stall_rule_and_leg_log_by_hand():
+    """patience 3, progress 1 on the line z = 0, 10, 20: a slow walk (0.4 per step: progress every
+    third step) is never cut although it overruns the fixed budget; standing still is cut after 4
+    stalled steps. Every leg reached is logged as (d, steps, longest stall)."""
+    dist, g, cfg = _agent_step_case()  # switch radius 1
+    step = lambda a, x, p=3.0: rules.agent_step(dist, g, cfg, a, jnp.array([x]), 0.5, p)  # noqa: E731
+    a = rules.agent_init(dist, g, jnp.array([0.5]), jnp.array([20.5]), 0.5, True, 3.0)
+    assert (int(a.node), int(a.prev), float(a.budget), float(a.leg_d)) == (0, START, 3.0, 0.5)
+    a = step(a, 0.2)  # z0 reached at once: start leg logged (d 0.5, 1 step, stall 0); edge 0 -> 1
+    assert (int(a.node), int(a.prev), float(a.budget), float(a.leg_d), int(a.n_legs)) == (1, 0, 3.0, 10.0, 1)
+    np.testing.assert_array_equal(a.legs[0], [0.5, 1, 0])
+    stalls = []
+    for k in range(1, 22):  # x = 0.6 .. 8.6: d to z1 = 9.4, 9.0, 8.6, 8.2 (progress), ...
+        a = step(a, 0.2 + 0.4 * k)
+        stalls.append(int(a.stall))
+    assert stalls[:5] == [0, 1, 2, 0, 1] and max(stalls) == 2 and int(a.max_stall) == 2
+    assert int(a.pruned) == 0 and int(a.t_edge) == 21 > 1.5 * 10  # the fixed budget (15) would have cut it
+    a = step(a, 9.5)  # d = 0.5 <= 1: z1 reached after 22 steps, longest stall 2
+    assert int(a.node) == 2 and int(a.n_legs) == 2
+    np.testing.assert_array_equal(a.legs[1], [10.0, 22, 2])
+    np.testing.assert_array_equal(a.legs[2:], -1.0)
+    for i in range(4):  # standing at 11 (d to z2 = 9): the first step sets the best, then 3 stalls
+        a = step(a, 11.0)
+    assert int(a.pruned) == 0 and int(a.stall) == 3
+    a = step(a, 11.0)  # stall 4 > patience 3: edge 1 -> 2 cut
+    assert int(a.pruned) == 1 and bool(a.needs_replan) and not np.isfinite(float(a.w[1, 2]))
+    assert (int(a.stall), int(a.max_stall), int(a.n_legs)) == (0, 0, 2)  # a cut leg is not logged
+    # kappa = inf never cuts under the stall rule either
+    b = rules.agent_init(dist, g, jnp.array([0.5]), jnp.array([20.5]), jnp.inf, True, 3.0)
+    assert not np.isfinite(float(b.budget))
+    for _ in range(50):
+        b = rules.agent_step(dist, g, cfg, b, jnp.array([3.0]), jnp.inf, 3.0)
+    assert int(b.pruned) == 0 and int(b.max_stall) > 40
+
+
+def _scenario(agent, n, steps, kappas, patience=None):
+    """antmaze/pointmaze-medium task 4, the shortest route's corridor cell (5, 3) closed; ``n``
+    episodes per kappa (and per ``patience``, 0 the fixed rule)."""
     base = mazes.layout('medium')
     closed = base.copy()
     closed[5, 3] = 1
@@ -98,28 +134,41 @@ def _scenario(agent, n, steps, kappas):
     run = jax.jit(counted)
     b = n * len(kappas)
     kappa = jnp.repeat(jnp.asarray(kappas, jnp.float32), n)
+    patience = jnp.repeat(jnp.asarray(patience or [0.0] * len(kappas), jnp.float32), n)
     keys = rollout.episode_keys(jax.random.PRNGKey(0), np.arange(b))
-    out = run(aux, graph, rollout.episode_inputs(keys, np.full(b, 4), closed, kappa, True))
-    return jax.device_get(out), run, (aux, graph, base, b, kappa), traces
+    out = run(aux, graph, rollout.episode_inputs(keys, np.full(b, 4), closed, kappa, True, patience))
+    return jax.device_get(out), run, (aux, graph, base, b, kappa, patience), traces
 
 
 def _check(out, n, kappas):
+    """The first two row groups: kappa 0.25 (reroutes), then inf (stuck at the wall)."""
     rates = {k: float(out['success'][i * n:(i + 1) * n].mean()) for i, k in enumerate(kappas)}
     assert rates[0.25] >= 0.9, rates
     assert rates[float('inf')] <= 0.2, rates
-    assert out['pruned'][:n].min() >= 1 and out['pruned'][n:].max() == 0
+    assert out['pruned'][:n].min() >= 1 and out['pruned'][n:2 * n].max() == 0
     return rates
 
 
 def test_pruning_reroutes_the_point_around_a_closed_corridor_and_compiles_once():
-    kappas = [0.25, float('inf')]
-    out, run, (aux, graph, base, b, kappa), traces = _scenario('point', 10, 400, kappas)
-    _check(out, 10, kappas)
+    """Rows: the fixed budget (kappa 0.25), no pruning, and the stall rule (patience 20) in one batch."""
+    kappas = [0.25, float('inf'), 0.25]
+    out, run, (aux, graph, base, b, kappa, patience), traces = _scenario('point', 10, 400, kappas, [0, 0, 20])
+    _check(out, 10, kappas[:2])
+    stall = slice(20, 30)
+    assert out['success'][stall].mean() >= 0.9 and out['pruned'][stall].min() >= 1  # the stall rule reroutes too
     # a second call with other tasks, seeds and walls does not recompile
     keys = rollout.episode_keys(jax.random.PRNGKey(7), np.arange(b))
-    out2 = jax.device_get(run(aux, graph, rollout.episode_inputs(keys, np.arange(b) % 5 + 1, base, kappa, True)))
+    out2 = jax.device_get(run(aux, graph, rollout.episode_inputs(keys, np.arange(b) % 5 + 1, base, kappa, True,
+                                                                 patience)))
     assert len(traces) == 1
-    assert out2['success'][:10].mean() >= 0.9  # open maze, tasks 1..5
+    assert out2['success'][:10].mean() >= 0.9 and out2['success'][20:].mean() >= 0.9  # open maze, tasks 1..5
+    # the leg log: one row per completed leg, steps >= its longest stall, nothing logged past the count
+    legs, n = out2['legs'], out2['n_legs']
+    logged = legs[..., 1] >= 0
+    np.testing.assert_array_equal(logged.sum(1), np.minimum(n, rules.MAX_LEGS))
+    assert n[10:20].min() >= 1 and (legs[logged][:, 0] > 0).all() and (legs[logged][:, 1] >= 1).all()
+    assert (legs[logged][:, 2] <= legs[logged][:, 1]).all()
+    assert out2['pruned'][10:20].max() == 0  # the calibration rows (no pruning) never cut
 
 
 @pytest.mark.slow  # about 3 minutes on the 2-core CPU

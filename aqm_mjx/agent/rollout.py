@@ -5,9 +5,9 @@ environments, with no host round trip per step.
     run = make_rollout(env, agent, AgentConfig(), steps=1000)
     out = jax.jit(run)(agent.aux, graph, episode_inputs(episode_keys(key, ids), task_ids, grids, kappa, use_graph))
 
-Each environment carries its own task, walls, budget slack and whether it uses the graph, so
-ablations (no pruning: ``kappa = inf``; the flat policy: ``use_graph = False``) and shifted layouts
-are rows of one batch.
+Each environment carries its own task, walls, budget slack, budget rule and whether it uses the
+graph, so ablations (no pruning: ``kappa = inf``; the flat policy: ``use_graph = False``; the stall
+rule: ``patience > 0``) and shifted layouts are rows of one batch.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.agent.rules import MAX_CUTS, AgentConfig, agent_init, agent_step, redirect, replan
+from aqm_mjx.agent.rules import MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, redirect, replan
 from aqm_mjx.interface import Agent
 from aqm_mjx.mapping.graph import Graph
 
@@ -30,6 +30,7 @@ class EpisodeInputs(NamedTuple):
     grids: jax.Array  # int8 [B, H, W]: each environment's maze
     kappa: jax.Array  # float32 [B]: budget slack (inf: no pruning)
     use_graph: jax.Array  # bool [B]: False: the flat policy
+    patience: jax.Array  # float32 [B]: 0 the fixed budget (1 + kappa) d; > 0 the stall rule's patience
 
 
 def episode_keys(key: jax.Array, ids) -> jax.Array:
@@ -38,10 +39,10 @@ def episode_keys(key: jax.Array, ids) -> jax.Array:
     return jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 2))(jnp.asarray(ids, jnp.int32))
 
 
-def episode_inputs(keys, task_ids, grids, kappa, use_graph) -> EpisodeInputs:
-    """:class:`EpisodeInputs` with fixed dtypes (uint32, int32, int8, float32, bool), so that new
-    tasks, seeds, walls or kappas never change the compiled signature. ``grids`` may be one
-    ``[H, W]`` maze, ``kappa`` and ``use_graph`` scalars: they are broadcast to the batch."""
+def episode_inputs(keys, task_ids, grids, kappa, use_graph, patience=0.0) -> EpisodeInputs:
+    """:class:`EpisodeInputs` with fixed dtypes (uint32, int32, int8, float32, bool, float32), so that
+    new tasks, seeds, walls, kappas or rules never change the compiled signature. ``grids`` may be
+    one ``[H, W]`` maze, ``kappa``, ``use_graph`` and ``patience`` scalars: they are broadcast."""
     task_ids = jnp.asarray(task_ids, jnp.int32)
     n = task_ids.shape[0]
     grids = jnp.asarray(grids, jnp.int8)
@@ -49,7 +50,8 @@ def episode_inputs(keys, task_ids, grids, kappa, use_graph) -> EpisodeInputs:
         grids = jnp.broadcast_to(grids, (n,) + grids.shape)
     return EpisodeInputs(keys=jnp.asarray(keys), task_ids=task_ids, grids=grids,
                          kappa=jnp.broadcast_to(jnp.asarray(kappa, jnp.float32), (n,)),
-                         use_graph=jnp.broadcast_to(jnp.asarray(use_graph, bool), (n,)))
+                         use_graph=jnp.broadcast_to(jnp.asarray(use_graph, bool), (n,)),
+                         patience=jnp.broadcast_to(jnp.asarray(patience, jnp.float32), (n,)))
 
 
 def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions: bool = False):
@@ -64,7 +66,8 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
     aims its controller at the goal and ignores ``graph`` (which may be None).
     Returns:
         ``run(aux, graph, inputs: EpisodeInputs) -> dict`` with ``success [B]`` (at the goal at the
-        last step), ``pruned [B]``, ``cuts [B, MAX_CUTS, 2]``, ``xy [T, B, 2]``, ``node [T, B]``
+        last step), ``pruned [B]``, ``cuts [B, MAX_CUTS, 2]``, ``legs [B, MAX_LEGS, 3]`` (completed
+        legs: d, steps, longest stall; -1 padded), ``n_legs [B]``, ``xy [T, B, 2]``, ``node [T, B]``
         and ``goal_xy [B, 2]``.
     """
     slots = cfg.slots
@@ -73,19 +76,20 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
 
     def run(aux: Any, graph: Graph, inputs: EpisodeInputs):
         d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
-        kappa = inputs.kappa
+        kappa, patience = inputs.kappa, inputs.patience
         k_reset, k_act = inputs.keys[:, 0], inputs.keys[:, 1]
         states = jax.vmap(env.reset)(k_reset, inputs.task_ids, inputs.grids)
         enc = jax.vmap(lambda o: agent.encode(aux, o))
-        agents = jax.vmap(lambda s, g, kp, u: agent_init(d, graph, s, g, kp, u))(
-            enc(states.obs), enc(states.goal), kappa, inputs.use_graph)
+        agents = jax.vmap(lambda s, g, kp, u, p: agent_init(d, graph, s, g, kp, u, p))(
+            enc(states.obs), enc(states.goal), kappa, inputs.use_graph, patience)
 
         def body(carry, t):
             states, agents = carry
             # PLAN: switch, time and prune per environment, then replan where an edge was cut
-            agents = jax.vmap(lambda a, s, kp: agent_step(d, graph, cfg, a, s, kp))(agents, enc(states.obs), kappa)
+            agents = jax.vmap(lambda a, s, kp, p: agent_step(d, graph, cfg, a, s, kp, p))(
+                agents, enc(states.obs), kappa, patience)
             agents = replan(agents, slots)
-            agents = jax.vmap(redirect)(agents, kappa)
+            agents = jax.vmap(redirect)(agents, kappa, patience)
             sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], states.goal)
             # ACT and STEP
             keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)
@@ -96,8 +100,8 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
             return (states, agents), trace
 
         (states, agents), trace = jax.lax.scan(body, (states, agents), jnp.arange(steps))
-        out = dict(success=states.success, pruned=agents.pruned, cuts=agents.cuts, xy=trace[0], node=trace[1],
-                   goal_xy=states.goal_xy)
+        out = dict(success=states.success, pruned=agents.pruned, cuts=agents.cuts, legs=agents.legs,
+                   n_legs=agents.n_legs, xy=trace[0], node=trace[1], goal_xy=states.goal_xy)
         if record_actions:
             out['actions'] = trace[2]
         return out
@@ -126,7 +130,8 @@ def _flat_rollout(env, agent: Agent, steps: int, record_actions: bool):
 
         states, trace = jax.lax.scan(body, states, jnp.arange(steps))
         out = dict(success=states.success, pruned=jnp.zeros((b,), jnp.int32),
-                   cuts=jnp.full((b, MAX_CUTS, 2), -1, jnp.int32), xy=trace[0], node=trace[1], goal_xy=states.goal_xy)
+                   cuts=jnp.full((b, MAX_CUTS, 2), -1, jnp.int32), legs=jnp.full((b, MAX_LEGS, 3), -1.0, jnp.float32),
+                   n_legs=jnp.zeros((b,), jnp.int32), xy=trace[0], node=trace[1], goal_xy=states.goal_xy)
         if record_actions:
             out['actions'] = trace[2]
         return out

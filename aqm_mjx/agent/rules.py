@@ -8,16 +8,23 @@ untraversable in the environment's own copy of the graph and replan (paper secti
   From a reached keypoint the agent re-chooses the best last keypoint and steps to the next hop of
   its Floyd-Warshall path; at the last keypoint the target becomes the goal.
 - Budgets: every leg of the path (s, z_1, ..., z_n, g) gets ``B = (1 + kappa) d(from, to)`` control
-  steps. A keypoint edge that overruns is set to ``inf`` in the environment's weights, a goal leg
-  cuts that goal attachment, a start leg bans that entry keypoint and re-attaches from where the
-  agent stands. After a prune the agent replans and heads from where it is to the next hop after the
-  pruned leg's start. ``kappa = inf`` disables pruning.
+  steps (the paper's rule, ``patience = 0``), or, with ``patience > 0``, the stall rule: a leg
+  overruns after ``patience`` consecutive steps in which d(s, target) did not fall ``progress``
+  below its best on that leg, however long the leg takes while it makes progress. A keypoint edge
+  that overruns is set to ``inf`` in the environment's weights, a goal leg cuts that goal
+  attachment, a start leg bans that entry keypoint and re-attaches from where the agent stands.
+  After a prune the agent replans and heads from where it is to the next hop after the pruned leg's
+  start. ``kappa = inf`` disables pruning under either rule.
+- Leg log: every leg that ends at its keypoint is recorded as (d(from, to), steps taken, longest
+  stall) in ``legs`` (the first :data:`MAX_LEGS`; ``n_legs`` counts all), the measurement that
+  calibrates either rule (:mod:`aqm_mjx.evaluation.calibration`).
 - ``use_graph=False`` is the flat policy: the target is always the goal.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable
 
 import jax
@@ -30,6 +37,7 @@ from aqm_mjx.config import option
 from aqm_mjx.mapping.graph import Graph
 
 MAX_CUTS = 16  # pruned edges remembered per environment for plots (all are counted in ``pruned``)
+MAX_LEGS = 32  # completed legs logged per environment (all are counted in ``n_legs``)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,6 +49,10 @@ class AgentConfig:
                           "paper's small slack: at the cpu preset the learned policy walks slower than the data's "
                           'expert that d measures (RESULTS.md, kappa sweep)')
     switch_radius: float = option(10.0, 'a keypoint counts as reached when d(s, z) <= switch_radius (RESULTS.md)')
+    patience: float = option(0.0, "0: the paper's budget (1 + kappa) d; > 0: the stall rule, a leg is cut after this "
+                             'many consecutive steps without progress in d(s, target)')
+    progress: float = option(1.0, 'stall rule: a step makes progress when d(s, target) falls this far below its best '
+                             'on the leg (units of d: control steps)')
     replan_slots: int = option(0, 'pruning environments replanned per Floyd-Warshall pass (speed only); '
                                '0: 8 on a CPU, 256 elsewhere')
 
@@ -50,6 +62,11 @@ class AgentConfig:
             raise ValueError(f'AgentConfig.kappa must be >= 0 (inf disables pruning); got {self.kappa}')
         if not self.switch_radius > 0:
             raise ValueError(f'AgentConfig.switch_radius must be > 0; got {self.switch_radius}')
+        if not (math.isfinite(self.patience) and self.patience >= 0):
+            raise ValueError(f'AgentConfig.patience must be a finite number >= 0 (0: the fixed budget); '
+                             f'got {self.patience}')
+        if not (math.isfinite(self.progress) and self.progress >= 0):
+            raise ValueError(f'AgentConfig.progress must be a finite number >= 0; got {self.progress}')
         if isinstance(self.replan_slots, bool) or not isinstance(self.replan_slots, int) or self.replan_slots < 0:
             raise ValueError(f'AgentConfig.replan_slots must be an integer >= 0 (0: by device); got {self.replan_slots}')
 
@@ -82,64 +99,93 @@ class AgentState:
     node: jax.Array  # int32 target keypoint (-1: the goal)
     prev: jax.Array  # int32 start of the budgeted leg: a keypoint, START, or -1 (no budget)
     t_edge: jax.Array  # int32 steps spent on the current leg
-    budget: jax.Array  # float32 steps allowed on the current leg (inf: none)
+    budget: jax.Array  # float32 steps (fixed rule) or stalled steps (stall rule) allowed on the leg (inf: none)
+    leg_d: jax.Array  # float32 d(from, to) of the current leg (inf: no budgeted leg)
+    best: jax.Array  # float32 the lowest d(s, target) on this leg that counted as progress (inf at its start)
+    stall: jax.Array  # int32 consecutive steps without progress on this leg
+    max_stall: jax.Array  # int32 the longest such run on this leg
+    legs: jax.Array  # float32 [MAX_LEGS, 3] completed legs: (d(from, to), steps, longest stall); -1 padded
+    n_legs: jax.Array  # int32 legs completed (all of them; the first MAX_LEGS are in ``legs``)
     pruned: jax.Array  # int32 legs marked untraversable so far (edges, goal and start attachments)
     cuts: jax.Array  # int32 [MAX_CUTS, 2] the first MAX_CUTS pruned keypoint edges (i, j), -1 padded (plots)
     needs_replan: jax.Array  # bool: w or to_g changed this step
 
 
-def _entry(a_dist: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Array, kappa) -> tuple:
-    """First target of the best plan and its start-leg budget: ``(node, prev, budget)``."""
+def leg_budget(leg_d: jax.Array, kappa: jax.Array, patience: jax.Array) -> jax.Array:
+    """A leg's budget: ``(1 + kappa) leg_d`` steps (``patience`` 0, the paper's rule) or ``patience``
+    stalled steps (the stall rule); ``inf`` when ``kappa`` is or the leg is unbudgeted (``leg_d`` inf)."""
+    fixed = (1.0 + kappa) * leg_d
+    stall = jnp.where(jnp.isfinite(kappa) & jnp.isfinite(leg_d), patience, jnp.inf)
+    return jnp.where(patience > 0, stall, fixed).astype(jnp.float32)
+
+
+def _entry(a_dist: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Array, kappa, patience) -> tuple:
+    """First target of the best plan, its start-leg budget and length: ``(node, prev, budget, leg_d)``."""
     first = planning.plan(a_dist, from_s, to_g, direct).first
     on_graph = first >= 0
-    budget = jnp.where(on_graph, (1.0 + kappa) * from_s[jnp.maximum(first, 0)], jnp.inf)
-    return first.astype(jnp.int32), jnp.where(on_graph, START, -1).astype(jnp.int32), budget.astype(jnp.float32)
+    leg_d = jnp.where(on_graph, from_s[jnp.maximum(first, 0)], jnp.inf).astype(jnp.float32)
+    return (first.astype(jnp.int32), jnp.where(on_graph, START, -1).astype(jnp.int32),
+            leg_budget(leg_d, kappa, patience), leg_d)
 
 
 def agent_init(dist: Callable, graph: Graph, s: jax.Array, g: jax.Array, kappa: jax.Array,
-               use_graph: jax.Array = True) -> AgentState:
+               use_graph: jax.Array = True, patience: jax.Array = 0.0) -> AgentState:
     """Plan from latent ``s [L]`` to latent ``g [L]`` on ``graph`` (one environment); the start leg's
-    budget uses ``kappa`` (per environment: an ablation is a row of the batch)."""
+    budget uses ``kappa`` and ``patience`` (per environment: an ablation is a row of the batch)."""
     d_kk, nxt = planning.floyd_warshall(graph.w)
     from_s, to_g, direct = planning.attach(dist, graph.z, graph.mask, s, g, graph.tau)
-    node, prev, budget = _entry(d_kk, from_s, to_g, direct, kappa)
+    node, prev, budget, leg_d = _entry(d_kk, from_s, to_g, direct, kappa, patience)
     node = jnp.where(use_graph, node, -1).astype(jnp.int32)
     prev = jnp.where(use_graph, prev, -1).astype(jnp.int32)
     budget = jnp.where(use_graph, budget, jnp.inf).astype(jnp.float32)
+    leg_d = jnp.where(use_graph, leg_d, jnp.inf).astype(jnp.float32)
     k = graph.w.shape[0]
     return AgentState(w=graph.w, dist=d_kk, nxt=nxt.astype(jnp.int32), to_g=to_g, goal=g, banned=jnp.zeros(k, bool),
-                      node=node, prev=prev, t_edge=jnp.int32(0), budget=budget, pruned=jnp.int32(0),
+                      node=node, prev=prev, t_edge=jnp.int32(0), budget=budget, leg_d=leg_d,
+                      best=jnp.float32(jnp.inf), stall=jnp.int32(0), max_stall=jnp.int32(0),
+                      legs=jnp.full((MAX_LEGS, 3), -1.0, jnp.float32), n_legs=jnp.int32(0), pruned=jnp.int32(0),
                       cuts=jnp.full((MAX_CUTS, 2), -1, jnp.int32), needs_replan=jnp.bool_(False))
 
 
-def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """From keypoint ``k``: ``(hop, prev, budget)``. The hop is the next keypoint towards the best
-    last keypoint, or -1 (the goal) when ``k`` is that keypoint (a goal leg budgeted by
+def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array, patience: jax.Array) -> tuple:
+    """From keypoint ``k``: ``(hop, prev, budget, leg_d)``. The hop is the next keypoint towards the
+    best last keypoint, or -1 (the goal) when ``k`` is that keypoint (a goal leg budgeted by
     ``to_g[k]``) or when no path is left (unbudgeted, ``prev`` -1)."""
     total = a.dist[k] + a.to_g
     last = jnp.argmin(total).astype(jnp.int32)
     stuck = ~jnp.isfinite(total[last])
     hop = jnp.where((k == last) | stuck, -1, a.nxt[k, last]).astype(jnp.int32)
-    leg = jnp.where(hop >= 0, a.w[k, jnp.maximum(hop, 0)], a.to_g[k])
-    budget = jnp.where(stuck, jnp.inf, (1.0 + kappa) * leg).astype(jnp.float32)
-    return hop, jnp.where(stuck, -1, k).astype(jnp.int32), budget
+    leg = jnp.where(stuck, jnp.inf, jnp.where(hop >= 0, a.w[k, jnp.maximum(hop, 0)], a.to_g[k])).astype(jnp.float32)
+    return hop, jnp.where(stuck, -1, k).astype(jnp.int32), leg_budget(leg, kappa, patience), leg
 
 
 def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
-               kappa: jax.Array) -> AgentState:
-    """Update one environment's target for the current latent ``s [L]`` (switch, time, prune).
+               kappa: jax.Array, patience: jax.Array = 0.0) -> AgentState:
+    """Update one environment's target for the current latent ``s [L]`` (switch, time, prune, log).
 
     On a keypoint edge or goal leg overrun the target points back at the leg's start keypoint,
     unbudgeted; :func:`replan` and :func:`redirect` then choose the next hop from there. On a start
-    leg overrun the agent re-attaches from ``s`` without the banned entries.
+    leg overrun the agent re-attaches from ``s`` without the banned entries. ``patience`` > 0 runs
+    the stall rule (``cfg.progress`` is its progress threshold).
     """
     k = jnp.maximum(a.node, 0)
-    reached = (a.node >= 0) & (dist(s, graph.z[k]) <= cfg.switch_radius)
+    d_node = dist(s, graph.z[k])
+    reached = (a.node >= 0) & (d_node <= cfg.switch_radius)
     # SWITCH: from the reached keypoint, the next hop of the best path
-    hop, hop_prev, hop_budget = _next_leg(a, k, kappa)
+    hop, hop_prev, hop_budget, hop_d = _next_leg(a, k, kappa, patience)
+    # PROGRESS on the leg (the stall rule's clock; logged for both rules)
+    d_target = jnp.where(a.node >= 0, d_node, dist(s, a.goal))
+    progressed = d_target < a.best - cfg.progress
+    best = jnp.where(progressed, d_target, a.best)
+    stall = jnp.where(progressed, 0, a.stall + 1).astype(jnp.int32)
+    max_stall = jnp.maximum(a.max_stall, stall)
     # OVERRUN: mark the leg untraversable
     t = a.t_edge + 1
-    over = ~reached & (t > a.budget)
+    over = ~reached & jnp.where(patience > 0, stall > a.budget, t > a.budget)
+    # LOG the leg that ends here
+    logged = reached & (a.prev != -1)
+    row = jnp.stack([a.leg_d, t.astype(jnp.float32), max_stall.astype(jnp.float32)])
+    legs = a.legs.at[jnp.where(logged, a.n_legs, MAX_LEGS)].set(row, mode='drop')
     edge_over = over & (a.prev >= 0) & (a.node >= 0)
     goal_over = over & (a.prev >= 0) & (a.node < 0)
     start_over = over & (a.prev == START) & (a.node >= 0)
@@ -153,25 +199,36 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     # re-attach from here (used on a start-leg overrun only; 2 K + 2 distances per step)
     from_s = planning.attach_start(dist, graph.z, graph.mask & ~banned, s, graph.tau)
     direct = planning.direct_edge(dist, s, a.goal, graph.tau)
-    e_node, e_prev, e_budget = _entry(a.dist, from_s, to_g, direct, kappa)
+    e_node, e_prev, e_budget, e_d = _entry(a.dist, from_s, to_g, direct, kappa, patience)
     back = edge_over | goal_over
     node = jnp.where(reached, hop, jnp.where(back, a.prev, jnp.where(start_over, e_node, a.node)))
     prev = jnp.where(reached, hop_prev, jnp.where(back, -1, jnp.where(start_over, e_prev, a.prev)))
     budget = jnp.where(reached, hop_budget, jnp.where(back, jnp.inf, jnp.where(start_over, e_budget, a.budget)))
+    leg_d = jnp.where(reached, hop_d, jnp.where(back, jnp.inf, jnp.where(start_over, e_d, a.leg_d)))
+    new_leg = reached | over
     return a.replace(w=w, to_g=to_g, banned=banned, cuts=cuts, node=node.astype(jnp.int32),
-                     prev=prev.astype(jnp.int32), t_edge=jnp.where(reached | over, 0, t).astype(jnp.int32),
-                     budget=budget.astype(jnp.float32), pruned=a.pruned + over.astype(jnp.int32), needs_replan=back)
+                     prev=prev.astype(jnp.int32), t_edge=jnp.where(new_leg, 0, t).astype(jnp.int32),
+                     budget=budget.astype(jnp.float32), leg_d=leg_d.astype(jnp.float32),
+                     best=jnp.where(new_leg, jnp.inf, best).astype(jnp.float32),
+                     stall=jnp.where(new_leg, 0, stall).astype(jnp.int32),
+                     max_stall=jnp.where(new_leg, 0, max_stall).astype(jnp.int32),
+                     legs=legs, n_legs=a.n_legs + logged.astype(jnp.int32),
+                     pruned=a.pruned + over.astype(jnp.int32), needs_replan=back)
 
 
-def redirect(a: AgentState, kappa: jax.Array) -> AgentState:
+def redirect(a: AgentState, kappa: jax.Array, patience: jax.Array = 0.0) -> AgentState:
     """After a prune and :func:`replan`: from the pruned leg's start z_i, take the next hop of the
     new best path straight away (a budgeted leg from z_i), rather than walking back to z_i."""
     i = jnp.maximum(a.node, 0)  # agent_step pointed node back at z_i
-    hop, prev, budget = _next_leg(a, i, kappa)
+    hop, prev, budget, leg_d = _next_leg(a, i, kappa, patience)
     go = a.needs_replan
     return a.replace(node=jnp.where(go, hop, a.node).astype(jnp.int32),
                      prev=jnp.where(go, prev, a.prev).astype(jnp.int32),
-                     budget=jnp.where(go, budget, a.budget).astype(jnp.float32), t_edge=jnp.where(go, 0, a.t_edge))
+                     budget=jnp.where(go, budget, a.budget).astype(jnp.float32),
+                     leg_d=jnp.where(go, leg_d, a.leg_d).astype(jnp.float32), t_edge=jnp.where(go, 0, a.t_edge),
+                     best=jnp.where(go, jnp.inf, a.best).astype(jnp.float32),
+                     stall=jnp.where(go, 0, a.stall).astype(jnp.int32),
+                     max_stall=jnp.where(go, 0, a.max_stall).astype(jnp.int32))
 
 
 def replan(a: AgentState, slots: int = 8) -> AgentState:

@@ -20,7 +20,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from aqm_mjx.agent.rollout import make_rollout
-from aqm_mjx.agent.rules import AgentConfig
+from aqm_mjx.agent.rules import MAX_LEGS, AgentConfig
 from aqm_mjx.evaluation import protocol as proto
 from aqm_mjx.interface import Agent
 from aqm_mjx.mapping.graph import Graph
@@ -59,6 +59,8 @@ class Results(NamedTuple):
     summary: dict  # {agent: {layout: {'task_1': rate, ..., 'mean': rate, 'pruned_mean': x}}}
     traces: dict  # {(agent, layout, task): {'xy': [T, 2], 'node': [T], 'cuts': [C, 2], 'goal_xy': [2], ...}}
     timing: dict
+    legs: np.ndarray  # float32 [E, MAX_LEGS, 3] completed legs (d, steps, longest stall), -1 padded
+    n_legs: np.ndarray  # int32 [E] legs completed (the first MAX_LEGS are in ``legs``)
 
 
 def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional[Mesh] = None):
@@ -70,7 +72,8 @@ def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional
         return jax.jit(run)
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec('env'))
     time_env = NamedSharding(mesh, PartitionSpec(None, 'env'))
-    out = dict(success=shard, pruned=shard, cuts=shard, xy=time_env, node=time_env, goal_xy=shard)
+    out = dict(success=shard, pruned=shard, cuts=shard, legs=shard, n_legs=shard, xy=time_env, node=time_env,
+               goal_xy=shard)
     return jax.jit(run, in_shardings=(rep, rep, shard), out_shardings=out)
 
 
@@ -84,13 +87,13 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
         agent: any :class:`~aqm_mjx.interface.Agent` with its parameters bound.
         graph: from :func:`aqm_mjx.mapping.build.build_map` (or trimmed); None for an agent that
             does not plan (then only its flat row is run).
-        cfg: the agent's rules (its ``kappa`` is the AQM row's).
+        cfg: the agent's rules (its ``kappa`` and ``patience`` are the AQM row's).
         variants: ``{name: grid [H, W]}``; default ``{'base': the maze's layout}``.
         key: base of the episode keys (default ``PRNGKey(0)``).
         mesh: devices to shard the environments over (default: all devices).
         program: a compiled chunk from :func:`make_program` to reuse (its ``steps`` and ``mesh``).
     """
-    eps = proto.plan_episodes(env, protocol, cfg.kappa, variants, plans=agent.plans)
+    eps = proto.plan_episodes(env, protocol, cfg.kappa, variants, plans=agent.plans, patience=cfg.patience)
     table = eps.table
     mesh = device_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
@@ -103,6 +106,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     n = len(table.task)
     n_chunks = -(-n // chunk)
     success, pruned = np.zeros(n, bool), np.zeros(n, np.int32)
+    legs, n_legs = np.full((n, MAX_LEGS, 3), -1.0, np.float32), np.zeros(n, np.int32)
     first = {}  # (agent, layout, task) -> row of its first episode, whose trajectory is kept
     for r in range(n):
         first.setdefault((table.agent[r], table.variant[r], table.task[r]), r)
@@ -125,6 +129,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
         timing.setdefault('first_chunk_s', time.perf_counter() - t_c)
         success[rows[real]] = success_c[real]
         pruned[rows[real]] = pruned_c[real]
+        legs[rows[real]], n_legs[rows[real]] = fetch_global(out['legs'])[real], fetch_global(out['n_legs'])[real]
         wanted = [(i, rows[i]) for i in np.flatnonzero(real) if rows[i] in keep]
         if wanted:
             xy, node, cuts, goal = (fetch_global(out[k]) for k in ('xy', 'node', 'cuts', 'goal_xy'))
@@ -143,4 +148,4 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     rates, prunes = jax.device_get(proto.success_rates(eps, success, pruned))
     names = list(eps.variants)
     summary = proto.format_summary(rates, eps.agents, names, eps.task_ids, prunes)
-    return Results(eps.agents, names, eps.task_ids, table, success, pruned, summary, traces, timing)
+    return Results(eps.agents, names, eps.task_ids, table, success, pruned, summary, traces, timing, legs, n_legs)

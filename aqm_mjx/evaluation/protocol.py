@@ -3,7 +3,7 @@ episodes, and the success rates (on device).
 
 Protocol: every task of the maze, ``episodes`` episodes each, deterministic actions clipped to
 [-1, 1], an episode succeeds when it is at the goal at its last step. The AQM agent, its ablations
-(other kappas, no pruning, the flat policy) and test-time layouts (:mod:`aqm_mjx.envs.shifts`) are
+(other kappas, the stall rule, no pruning, the flat policy) and test-time layouts (:mod:`aqm_mjx.envs.shifts`) are
 rows of the same table. Episode ``(layout, task, e)`` has the same key id for every agent, so the
 agents meet identical episodes.
 """
@@ -35,7 +35,8 @@ class ProtocolConfig:
     horizon: int = option(0, "control steps per episode; 0: the environment's limit (1000 for the ant)")
     envs: int = option(1024, 'environments per jitted call; the episode table runs in chunks of this size')
     ablations: tuple[str, ...] = option((NO_PRUNING, FLAT), "agents run beside AQM on the same episodes: "
-                                        "'no-pruning', 'flat', 'kappa=X'")
+                                        "'no-pruning', 'flat', 'kappa=X' (the fixed budget at slack X), "
+                                        "'stall=P' (the stall rule at patience P)")
 
     def __post_init__(self):
         cfg_lib.check_types(self)
@@ -49,28 +50,40 @@ class ProtocolConfig:
         agent_specs(1.0, self.ablations)  # validates the ablation names
 
 
-def agent_specs(kappa: float, ablations, plans: bool = True) -> list[tuple[str, float, bool]]:
-    """``[(name, kappa, use_graph)]``: the AQM agent at ``kappa`` first, then the ablations; for a
-    method without a quasimetric (``plans`` False) the flat controller alone."""
+def _number(a: str, what: str, finite: bool = False) -> float:
+    try:
+        x = float(a.split('=', 1)[1])
+    except ValueError:
+        raise ValueError(f'ablation {a!r}: {what} must be a number') from None
+    if not x >= 0 or (finite and not math.isfinite(x)):
+        raise ValueError(f'ablation {a!r}: {what} must be {"a finite number " if finite else ""}>= 0')
+    return x
+
+
+def agent_specs(kappa: float, ablations, plans: bool = True,
+                patience: float = 0.0) -> list[tuple[str, float, bool, float]]:
+    """``[(name, kappa, use_graph, patience)]``: the AQM agent at ``kappa`` and ``patience`` (0: the
+    fixed budget) first, then the ablations (``'kappa=X'``: the fixed budget at X; ``'stall=P'``:
+    the stall rule at patience P, with the AQM row's kappa); for a method without a quasimetric
+    (``plans`` False) the flat controller alone."""
     if not plans:
-        return [(FLAT, math.inf, False)]
-    out = [(AQM, float(kappa), True)]
+        return [(FLAT, math.inf, False, 0.0)]
+    out = [(AQM, float(kappa), True, float(patience))]
     for a in ablations:
         if a == NO_PRUNING:
-            out.append((a, math.inf, True))
+            out.append((a, math.inf, True, 0.0))
         elif a == FLAT:
-            out.append((a, math.inf, False))
+            out.append((a, math.inf, False, 0.0))
         elif isinstance(a, str) and a.startswith('kappa='):
-            try:
-                k = float(a.split('=', 1)[1])
-            except ValueError:
-                raise ValueError(f'ablation {a!r}: kappa must be a number') from None
-            if not k >= 0:
-                raise ValueError(f'ablation {a!r}: kappa must be >= 0')
-            out.append((a, k, True))
+            out.append((a, _number(a, 'kappa'), True, 0.0))
+        elif isinstance(a, str) and a.startswith('stall='):
+            p = _number(a, 'patience', finite=True)
+            if p == 0:
+                raise ValueError(f'ablation {a!r}: patience must be > 0 (0 is the fixed budget: kappa=X)')
+            out.append((a, float(kappa) if math.isfinite(kappa) else 1.0, True, p))
         else:
-            raise ValueError(f'unknown ablation {a!r}; expected {NO_PRUNING!r}, {FLAT!r} or kappa=X')
-    names = [n for n, _, _ in out]
+            raise ValueError(f'unknown ablation {a!r}; expected {NO_PRUNING!r}, {FLAT!r}, kappa=X or stall=P')
+    names = [spec[0] for spec in out]
     if len(set(names)) != len(names):
         raise ValueError(f'ablations repeat an agent: {names}')
     return out
@@ -87,6 +100,7 @@ class Table(NamedTuple):
     kappa: np.ndarray  # float32 [E]
     use_graph: np.ndarray  # bool [E]
     group: np.ndarray  # int32 [E] (agent, layout, task) cell of the rate table, row-major
+    patience: np.ndarray  # float32 [E] (0: the fixed budget)
 
 
 def episode_table(specs, n_variants: int, task_ids, episodes: int) -> Table:
@@ -99,8 +113,9 @@ def episode_table(specs, n_variants: int, task_ids, episodes: int) -> Table:
     seed_id = ((v * n_tasks + task_pos) * episodes + e).astype(np.int32)
     kappa = np.array([specs[i][1] for i in a], np.float32)
     use = np.array([specs[i][2] for i in a], bool)
+    patience = np.array([specs[i][3] for i in a], np.float32)
     group = ((a * n_variants + v) * n_tasks + task_pos).astype(np.int32)
-    return Table(a, v, t.astype(np.int32), e, seed_id, kappa, use, group)
+    return Table(a, v, t.astype(np.int32), e, seed_id, kappa, use, group, patience)
 
 
 class Episodes(NamedTuple):
@@ -124,10 +139,10 @@ class Episodes(NamedTuple):
 
 
 def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optional[dict] = None,
-                  plans: bool = True) -> Episodes:
+                  plans: bool = True, patience: float = 0.0) -> Episodes:
     """Validate the layouts and task ids of an evaluation and lay out its episode table
-    (``kappa``: the AQM agent's budget slack; ``plans`` False: a method without a quasimetric, one
-    flat row). The episode keys do not depend on the agents, so every method meets the same episodes."""
+    (``kappa``, ``patience``: the AQM agent's budget slack and rule; ``plans`` False: a method
+    without a quasimetric, one flat row). The episode keys do not depend on the agents, so every method meets the same episodes."""
     variants = {'base': env.layout} if variants is None else dict(variants)
     grids = np.stack([mazes.validate_grid(g, env.maze) for g in variants.values()])
     valid_ids = {t.task_id for t in mazes.tasks(env.maze)}
@@ -135,7 +150,7 @@ def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optiona
     bad = [t for t in task_ids if t not in valid_ids]
     if bad:
         raise ValueError(f'task ids {bad} do not exist in maze {env.maze!r} (it has {sorted(valid_ids)})')
-    specs = agent_specs(kappa, protocol.ablations, plans)
+    specs = agent_specs(kappa, protocol.ablations, plans, patience)
     table = episode_table(specs, len(grids), task_ids, protocol.episodes)
     return Episodes(variants, grids, task_ids, specs, table, int(protocol.horizon or env.max_episode_steps))
 
@@ -146,7 +161,7 @@ def table_inputs(episodes: Episodes, key: jax.Array, rows=None) -> EpisodeInputs
     t = episodes.table
     rows = np.arange(len(t.task)) if rows is None else np.asarray(rows)
     return episode_inputs(episode_keys(key, t.seed_id[rows]), t.task[rows], episodes.grids[t.variant[rows]],
-                          t.kappa[rows], t.use_graph[rows])
+                          t.kappa[rows], t.use_graph[rows], t.patience[rows])
 
 
 def success_rates(episodes: Episodes, success, pruned) -> tuple[jax.Array, jax.Array]:

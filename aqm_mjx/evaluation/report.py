@@ -9,7 +9,7 @@ import jax
 import numpy as np
 
 from aqm_mjx.files import write_json
-from aqm_mjx.evaluation import plots
+from aqm_mjx.evaluation import calibration, plots
 from aqm_mjx.evaluation.evaluate import Results
 from aqm_mjx.mapping.graph import Graph, edge_list
 
@@ -24,6 +24,13 @@ def print_summary(res: Results, log=print) -> None:
             row = res.summary[a][v]
             cells = [f'{100 * row[c]:8.0f}%' for c in cols[:-1]] + [f'{row["pruned_mean"]:9.2f}']
             log(f'{a + " / " + v:<{width}}' + ''.join(cells))
+    legs = calibration.report(res)
+    for v, row in legs.get(calibration.NO_PRUNING, {}).items():
+        c = row['calibrated']
+        log(f'legs of no-pruning / {v}: {row["legs"]} completed, steps/d median {row["steps_per_d"]["q50"]:.2f}, '
+            f'q95 {row["steps_per_d"]["q95"]:.2f}; longest stall q95 {row["longest_stall"]["q95"]:.0f}. Budgets that '
+            f'cut {100 * c["false_alarm"]:.0f}% of them: agent.kappa={c["kappa"]:.2f} (fixed rule) or '
+            f'agent.patience={c["patience"]:.0f} (stall rule)')
 
 
 def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str, env_name: str, episodes: int,
@@ -38,7 +45,8 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
         nodes_xy = np.asarray(graph.obs)[:, :2]
         edges = edge_list(graph.w, np.asarray(graph.mask))
     report = dict(env=env_name, **info, edges=int(len(edges)), agents=res.agents, variants=res.variants,
-                  tasks=res.tasks, summary=res.summary, timing=res.timing, backend=jax.default_backend(),
+                  tasks=res.tasks, summary=res.summary, legs=calibration.report(res), timing=res.timing,
+                  backend=jax.default_backend(),
                   device=str(jax.devices()[0]), device_count=jax.device_count())
     write_json(os.path.join(out, 'results.json'), report)
     first = res.variants[0]

@@ -1,0 +1,101 @@
+"""Budgets in the controller's own time: what the leg log of an evaluation says about how long the
+agent really takes per leg, and the budget settings that cut a traversable leg at a chosen rate.
+
+Every completed leg of an episode is logged by the agent (:data:`aqm_mjx.agent.rules.MAX_LEGS` per
+episode) as ``(d, steps, longest stall)``: the quasimetric's length of the leg, the control steps the
+controller took to reach its keypoint, and the longest run of steps without progress in d on it.
+From the legs of a calibration pass (the no-pruning agent on the training layout, which never cuts,
+so every leg it completes is a traversable one) the two rules are calibrated at a false-alarm rate
+``q``:
+
+- the paper's fixed budget ``(1 + kappa) d``: ``kappa = quantile_{1-q}(steps / d) - 1``;
+- the stall rule: ``patience = quantile_{1-q}(longest stall)``.
+
+so that a fraction ``q`` of the traversable legs seen would have been cut. Legs the agent never
+finishes (it got stuck, or the episode ended) are not in the log, so the rate is a lower bound.
+
+    legs = calibration.legs_of(results, agent='no-pruning', layout='base')
+    calibration.calibrate(legs, false_alarm=0.02)   # {'kappa': ..., 'patience': ..., 'legs': n, ...}
+
+:func:`calibrate` is written in ``jax.numpy``: it also runs inside a jitted program on the
+``legs [E, MAX_LEGS, 3]`` output of a rollout.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from aqm_mjx.evaluation.protocol import NO_PRUNING
+
+QUANTILES = (0.5, 0.9, 0.95, 0.99)
+
+
+def valid(legs) -> jnp.ndarray:
+    """``bool [...]``: which rows of ``legs [..., 3]`` hold a logged leg (unused slots are -1 padded;
+    a leg of zero length is dropped, its ratio being undefined)."""
+    legs = jnp.asarray(legs)
+    return (legs[..., 1] >= 0) & (legs[..., 0] > 0) & jnp.isfinite(legs[..., 0])
+
+
+def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
+    """The budget settings that cut a fraction ``false_alarm`` of the legs in ``legs [..., 3]``.
+
+    Args:
+        legs: ``(d, steps, longest stall)`` per leg, any leading shape (e.g. ``[E, MAX_LEGS, 3]``),
+            -1 padded.
+        false_alarm: the fraction of (traversable) legs that the settings would cut, in (0, 1).
+        rows: optional ``bool`` mask over the leading axes: which legs to use (e.g. the no-pruning
+            rows of an episode table).
+    Returns:
+        ``{'kappa', 'patience', 'legs', 'ratio_q', 'stall_q'}``: the fixed rule's slack, the stall
+        rule's patience, the number of legs used, and the quantiles :data:`QUANTILES` of steps / d
+        and of the longest stall (NaN when no leg was logged). Jittable.
+    """
+    if not 0.0 < false_alarm < 1.0:
+        raise ValueError(f'false_alarm must be in (0, 1); got {false_alarm}')
+    legs = jnp.asarray(legs, jnp.float32)
+    ok = valid(legs)
+    if rows is not None:
+        r = jnp.asarray(rows, bool)
+        ok = ok & r.reshape(r.shape + (1,) * (ok.ndim - r.ndim))
+    ratio = jnp.where(ok, legs[..., 1] / jnp.where(ok, legs[..., 0], 1.0), jnp.nan).reshape(-1)
+    stall = jnp.where(ok, legs[..., 2], jnp.nan).reshape(-1)
+    qs = jnp.asarray(QUANTILES + (1.0 - false_alarm,), jnp.float32)
+    r_q, s_q = jnp.nanquantile(ratio, qs), jnp.nanquantile(stall, qs)
+    return dict(kappa=jnp.maximum(r_q[-1] - 1.0, 0.0), patience=jnp.maximum(s_q[-1], 1.0),
+                legs=jnp.sum(ok).astype(jnp.int32), ratio_q=r_q[:-1], stall_q=s_q[:-1])
+
+
+def legs_of(results, agent: str, layout=None) -> np.ndarray:
+    """``[N, 3]`` the logged legs of one agent's episodes (on one layout, or on all) of an
+    :class:`~aqm_mjx.evaluation.evaluate.Results`."""
+    if agent not in results.agents:
+        raise ValueError(f'no agent {agent!r} in these results (they hold {results.agents})')
+    rows = results.table.agent == results.agents.index(agent)
+    if layout is not None:
+        if layout not in results.variants:
+            raise ValueError(f'no layout {layout!r} in these results (they hold {results.variants})')
+        rows &= results.table.variant == results.variants.index(layout)
+    legs = np.asarray(results.legs)[rows].reshape(-1, 3)
+    return legs[np.asarray(valid(legs))]
+
+
+def report(results, false_alarm: float = 0.02) -> dict:
+    """``{agent: {layout: {...}}}`` for ``results.json``: per agent and layout, the legs logged, the
+    quantiles of steps / d and of the longest stall and, for the rows that never prune (the
+    calibration pass: ``no-pruning``), the settings :func:`calibrate` gives at ``false_alarm``."""
+    out = {}
+    for a in results.agents:
+        out[a] = {}
+        for v in results.variants:
+            legs = legs_of(results, a, v)
+            if not len(legs):
+                continue
+            c = {k: np.asarray(x).tolist() for k, x in calibrate(legs, false_alarm).items()}
+            row = dict(legs=int(c['legs']), steps_per_d={f'q{int(100 * q)}': r for q, r in zip(QUANTILES, c['ratio_q'])},
+                       longest_stall={f'q{int(100 * q)}': r for q, r in zip(QUANTILES, c['stall_q'])})
+            if a == NO_PRUNING:
+                row['calibrated'] = dict(false_alarm=false_alarm, kappa=c['kappa'], patience=c['patience'])
+            out[a][v] = row
+    return out

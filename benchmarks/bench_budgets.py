@@ -1,0 +1,124 @@
+"""Budgets in the learned controller's own time (issue 17): calibrate, then compare the rules.
+
+    python benchmarks/bench_budgets.py --checkpoint RUN/train/aqm/seed_0 --checkpoint RUN/train/aqm/seed_1 \
+        --episodes 20 --out benchmarks/results/budgets_cpu
+
+For every checkpoint (a seed), with one map (``stage_keys(PRNGKey(--seed))``, as ``aqm-mjx evaluate``):
+
+1. **Calibration pass**: the agent without pruning (kappa = inf) on the *training* layout, on
+   episodes of another key than the evaluation's (``--calibration-episodes`` per task). Every leg it
+   completes is traversable; :func:`aqm_mjx.evaluation.calibration.calibrate` turns their (d, steps,
+   longest stall) into the fixed rule's ``kappa`` and the stall rule's ``patience`` that would have
+   cut a fraction ``--false-alarm`` of them.
+2. **Evaluation** on the same episodes for every row: the paper's fixed rule at the preset's kappa
+   (``aqm``), the fixed rule at the calibrated kappa, the stall rule at the calibrated patience, no
+   pruning and the flat policy; layouts: the training layout and the closed-corridor layouts of the
+   shift suite (``--shift all`` adds the opened walls).
+
+Prints per row and layout: success pooled over seeds with its 95% Wilson interval, the per-seed
+means, and the legs cut per episode; writes ``rows.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import time
+
+import jax
+import numpy as np
+
+from aqm_mjx import files
+from aqm_mjx.envs import shifts
+from aqm_mjx.evaluation import calibration, evaluate, stats
+from aqm_mjx.learn import fit
+from aqm_mjx.mapping.build import trimmed_map
+from aqm_mjx.pipeline import stage_keys
+from aqm_mjx.run import _prepare, read_data
+
+from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+
+
+def one_seed(ckpt, a, log=print) -> dict:
+    env, _, cfg, path = _prepare(ckpt, None, a.dataset, 'base', a.set)
+    trained = fit.load(ckpt, log=log)
+    obs = read_data(path, env)['observations']
+    _, k_map, k_eval = stage_keys(jax.random.PRNGKey(a.seed))
+    graph, m = trimmed_map(trained.agent, obs, cfg.map, k_map)
+    suite = shifts.suite(env.maze)
+    variants = {k: g for k, g in suite.items() if k == 'base' or k.startswith('close') or a.shift == 'all'}
+    # 1. calibration: no pruning, training layout, other episodes
+    t0 = time.perf_counter()
+    cal_proto = dataclasses.replace(cfg.protocol, episodes=a.calibration_episodes, ablations=())
+    cal = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, kappa=float('inf'), patience=0.0),
+                            cal_proto, {'base': suite['base']}, key=jax.random.fold_in(k_eval, 1), progress=a.progress)
+    legs = calibration.legs_of(cal, 'aqm', 'base')
+    c = {k: np.asarray(v).tolist() for k, v in calibration.calibrate(legs, a.false_alarm).items()}
+    kappa_c, patience_c = round(float(c['kappa']), 2), float(round(c['patience']))
+    log(f'{ckpt}: {m["keypoints"]} keypoints; calibration pass {cal_proto.episodes} ep/task, {c["legs"]} legs, '
+        f'steps/d q50 {c["ratio_q"][0]:.2f} q95 {c["ratio_q"][2]:.2f}, longest stall q95 {c["stall_q"][2]:.0f} '
+        f'-> kappa {kappa_c}, patience {patience_c:.0f} at {a.false_alarm:.0%} false alarms '
+        f'({time.perf_counter() - t0:.0f} s)')
+    # 2. evaluation: every rule on the same episodes
+    ablations = (f'kappa={kappa_c}', f'stall={patience_c:g}', 'no-pruning', 'flat')
+    proto = dataclasses.replace(cfg.protocol, episodes=a.episodes, ablations=ablations)
+    res = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, patience=0.0), proto, variants,
+                            key=k_eval, progress=a.progress)
+    names = {'aqm': f'fixed, preset kappa {cfg.agent.kappa:g}', ablations[0]: f'fixed, calibrated kappa {kappa_c}',
+             ablations[1]: f'stall, calibrated patience {patience_c:g}', 'no-pruning': 'no pruning', 'flat': 'flat'}
+    rows = {}
+    for i, ag in enumerate(res.agents):
+        for j, v in enumerate(res.variants):
+            sel = (res.table.agent == i) & (res.table.variant == j)
+            rows[(names[ag], v)] = dict(success=int(res.success[sel].sum()), n=int(sel.sum()),
+                                        pruned=float(res.pruned[sel].mean()))
+    return dict(checkpoint=ckpt, keypoints=m['keypoints'], calibration=c, kappa=kappa_c, patience=patience_c,
+                rows=rows, variants=res.variants, timing=res.timing)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--checkpoint', action='append', required=True, help='a run folder (repeat: one per seed)')
+    p.add_argument('--dataset', help="default: the dataset recorded in each run's config.json")
+    p.add_argument('--episodes', type=int, default=20, help='evaluation episodes per task, row and layout')
+    p.add_argument('--calibration-episodes', type=int, default=4, help='calibration episodes per task')
+    p.add_argument('--false-alarm', type=float, default=0.02, help='fraction of traversable legs cut')
+    p.add_argument('--shift', choices=('closed', 'all'), default='closed')
+    p.add_argument('--seed', type=int, default=0, help='map and episode keys: stage_keys(PRNGKey(seed))')
+    p.add_argument('--set', action='append', default=[], help='map/agent/protocol override, e.g. protocol.tasks=1,2')
+    p.add_argument('--no-progress', dest='progress', action='store_false')
+    p.add_argument('--out', help='folder for rows.json')
+    a = p.parse_args()
+    if a.out:
+        files.check_writable(a.out, what='the benchmark')
+    seeds = [one_seed(c, a) for c in a.checkpoint]
+    variants = seeds[0]['variants']
+    print(f'\n{len(seeds)} seed(s) x {a.episodes} episodes per task; success pooled over seeds [95% Wilson], '
+          'per-seed means, legs cut per episode')
+    out_rows = []
+    for name in dict.fromkeys(k[0] for k in seeds[0]['rows']):
+        for v in variants:
+            cells = [s['rows'][(name, v)] for s in seeds]
+            k, n = sum(c['success'] for c in cells), sum(c['n'] for c in cells)
+            lo, hi = stats.wilson(k, n)
+            per = ', '.join(f'{100 * c["success"] / c["n"]:.0f}' for c in cells)
+            cut = np.mean([c['pruned'] for c in cells])
+            print(f'{name:<36} {v:<10} {100 * k / n:5.1f}% [{100 * lo:4.1f}-{100 * hi:5.1f}]  seeds {per:<10} '
+                  f'cut/ep {cut:5.2f}')
+            out_rows.append(dict(rule=name, layout=v, success=k, n=n, wilson=[lo, hi], per_seed=per, cut_per_episode=cut))
+    for s in seeds:
+        print(f"{s['checkpoint']}: calibrated kappa {s['kappa']}, patience {s['patience']:g} "
+              f"({s['calibration']['legs']} legs); evaluation {s['timing']['total_s']:.0f} s")
+    if a.out:
+        os.makedirs(a.out, exist_ok=True)
+        meta = [dict(checkpoint=s['checkpoint'], kappa=s['kappa'], patience=s['patience'],
+                     calibration=s['calibration'], keypoints=s['keypoints']) for s in seeds]
+        finish([dict(seeds=meta, rows=out_rows, episodes=a.episodes, false_alarm=a.false_alarm)],
+               os.path.join(a.out, 'rows.json'))
+    else:
+        finish([], None)
+
+
+if __name__ == '__main__':
+    main()
