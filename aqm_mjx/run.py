@@ -123,7 +123,7 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
     return res, rep
 
 
-def _prepare(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], shift: str, overrides):
+def prepare_evaluation(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], shift: str, overrides):
     """Everything an evaluation of ``checkpoint`` needs, checked before anything is loaded or built:
     ``(env, variants, RunConfig, dataset path)``."""
     method, train_cfg, meta = fit.read_meta(checkpoint)
@@ -154,7 +154,7 @@ def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, datase
     episode keys are :func:`~aqm_mjx.pipeline.stage_keys` of ``PRNGKey(seed)``, as in ``aqm-mjx run``.
     Layouts, tasks and the dataset are checked before anything is loaded or built.
     """
-    env, variants, cfg, path = _prepare(checkpoint, cfg, dataset, shift, overrides)
+    env, variants, cfg, path = prepare_evaluation(checkpoint, cfg, dataset, shift, overrides)
     out = out or os.path.join(checkpoint, 'eval')
     files.check_writable(out, what='the evaluation')  # before the map and the episodes, not after
     trained = fit.load(checkpoint, log=log)
@@ -184,12 +184,12 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
     checkpoints = list(checkpoints)
     if not checkpoints:
         raise ValueError('give at least one --checkpoint')
-    prepared = [_prepare(c, cfg, dataset, shift, overrides) for c in checkpoints]
+    prepared = [prepare_evaluation(c, cfg, dataset, shift, overrides) for c in checkpoints]
     env_names = sorted({p[0].name for p in prepared})
     if len(env_names) > 1:
         raise ValueError(f'the checkpoints were trained on different environments ({", ".join(env_names)}); '
                          'compare checkpoints of one environment')
-    labels = checkpoint_labels(checkpoints, [p[2].method for p in prepared])  # config.json read once, in _prepare
+    labels = checkpoint_labels(checkpoints, [p[2].method for p in prepared])  # config.json read once, above
     files.check_writable(out, what='the evaluation')  # before any map or episode
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
     table, per, programs, observations = {}, {}, {}, {}

@@ -35,13 +35,13 @@ from aqm_mjx.evaluation import calibration, evaluate, stats
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import stage_keys
-from aqm_mjx.run import _prepare, read_data
+from aqm_mjx.run import prepare_evaluation, read_data
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
 
 def one_seed(ckpt, a, log=print) -> dict:
-    env, _, cfg, path = _prepare(ckpt, None, a.dataset, 'base', a.set)
+    env, _, cfg, path = prepare_evaluation(ckpt, None, a.dataset, 'base', a.set)
     trained = fit.load(ckpt, log=log)
     obs = read_data(path, env)['observations']
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(a.seed))

@@ -78,6 +78,8 @@ def test_point_collection_file_format_and_ogbench_loader(tmp_path):
     cfg = collect.CollectConfig(env='pointmaze-medium', style='navigate', episodes=10, steps=120, batch=4, seed=3)
     res = collect.collect(cfg, progress=False)
     tr, va = res.train, res.val
+    # the bar's host callbacks: after steps 50, 100 and 120 of each of the 3 chunks (11 episodes, 4 at a time)
+    assert res.stats['progress_callbacks'] == 3 * 3
     assert tr['observations'].shape == (10 * 120, 2) and va['observations'].shape == (1 * 120, 2)
     assert tr['actions'].shape == (1200, 2) and tr['qpos'].shape == (1200, 2) and tr['qvel'].shape == (1200, 2)
     np.testing.assert_array_equal(np.flatnonzero(tr['terminals']), np.arange(119, 1200, 120))

@@ -2,6 +2,8 @@
 
 import dataclasses
 import json
+import time
+import types
 
 import jax
 import jax.numpy as jnp
@@ -16,6 +18,7 @@ from aqm_mjx.envs import mazes, shifts
 from aqm_mjx.evaluation import calibration, evaluate, protocol
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import MapConfig, build_map
+from aqm_mjx.progress import ChunkBar, tick
 
 
 # ------------------------------------------------------------------------------------------ shifts
@@ -79,6 +82,44 @@ def test_config_and_episode_table():
             protocol.ProtocolConfig(**bad)
     with pytest.raises(ValueError, match='selector'):
         MapConfig(selector='kmeans')
+
+
+def test_the_bar_moves_inside_a_1000_step_chunk():
+    """A jitted 1000-step scan over 8 vmapped environments (a few matmuls a step) with the hook of
+    the rollouts: it fires after every 50 steps, once per step and not once per environment, the
+    bar only moves forward, its updates are spread over the call, and it ends 8 episodes further.
+    (The evaluation programs' own counts: test_protocol_results_do_not_depend_on_chunking.)"""
+    bar = types.SimpleNamespace(n=0.0, seen=[])
+
+    def update(k):
+        bar.n += k
+        bar.seen.append((time.perf_counter(), bar.n))
+
+    bar.update = update
+    ticks = ChunkBar(bar)
+
+    def episode(x):
+        def body(x, t):
+            x = jnp.tanh(x @ x.T @ x / x.shape[0])
+            tick(ticks, t, 1000)
+            return x, None
+        return jax.lax.scan(body, x, jnp.arange(1000))[0]
+
+    run = jax.jit(jax.vmap(episode))
+    x = jax.random.normal(jax.random.PRNGKey(0), (8, 96, 96))
+    jax.block_until_ready(run(x))  # compile (its calls reach the bar too; start afresh)
+    bar.seen.clear()
+    ticks.calls, ticks.shown, bar.n = 0, 0.0, 0.0
+    ticks.start(8, 1000)
+    t0 = time.perf_counter()
+    jax.block_until_ready(run(x))
+    t1 = time.perf_counter()
+    during = list(bar.seen)
+    ticks.finish()
+    assert ticks.calls == 20 and len(during) >= 10
+    ns = [n for _, n in bar.seen]
+    assert ns == sorted(ns) and ns[-1] == pytest.approx(8.0) and during[0][1] == pytest.approx(8 * 50 / 1000)
+    assert during[-1][0] - during[0][0] > 0.5 * (t1 - t0), (during[0][0] - t0, during[-1][0] - t0, t1 - t0)
 
 
 def test_calibration_by_hand():
@@ -146,6 +187,7 @@ def test_protocol_results_do_not_depend_on_chunking():
     a = evaluate.evaluate(env, agent, graph, cfg, dataclasses.replace(proto, envs=7), variants, progress=False)
     b = evaluate.evaluate(env, agent, graph, cfg, dataclasses.replace(proto, envs=24), variants, progress=False)
     assert a.timing['chunks'] == 4 and b.timing['chunks'] == 1  # 3 agents x 2 layouts x 2 tasks x 2 = 24
+    assert a.timing['progress_callbacks'] == 4 * 8 and b.timing['progress_callbacks'] == 8  # every 50 of 400 steps
     np.testing.assert_array_equal(a.success, b.success)
     np.testing.assert_array_equal(a.pruned, b.pruned)
     # the summary is the per-episode mean, recomputed here

@@ -12,13 +12,14 @@ rule: ``patience > 0``) and shifted layouts are rows of one batch.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 
 from aqm_mjx.agent.rules import MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, redirect, replan
 from aqm_mjx.interface import Agent
+from aqm_mjx.progress import EVERY, tick
 from aqm_mjx.mapping.graph import Graph
 
 
@@ -54,7 +55,8 @@ def episode_inputs(keys, task_ids, grids, kappa, use_graph, patience=0.0) -> Epi
                          patience=jnp.broadcast_to(jnp.asarray(patience, jnp.float32), (n,)))
 
 
-def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions: bool = False):
+def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions: bool = False,
+                 progress: Optional[Callable] = None, every: int = EVERY):
     """Build the jittable episode program of ``agent`` in ``env``.
 
     Args:
@@ -62,6 +64,8 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
         agent: its functions are used; parameters come as ``aux`` at call time.
         cfg: the agent's rules; steps: control steps per episode.
         record_actions: also return the clipped actions ``[T, B, A]`` (benchmarks replay them).
+        progress: a host hook called with the steps done every ``every`` control steps and at the
+            end (:func:`aqm_mjx.progress.tick`); None: no callback in the program.
     An agent without a quasimetric (``agent.dist`` None: the flat baselines) gets a program that
     aims its controller at the goal and ignores ``graph`` (which may be None).
     Returns:
@@ -72,7 +76,7 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
     """
     slots = cfg.slots
     if agent.dist is None:
-        return _flat_rollout(env, agent, steps, record_actions)
+        return _flat_rollout(env, agent, steps, record_actions, progress, every)
 
     def run(aux: Any, graph: Graph, inputs: EpisodeInputs):
         d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
@@ -97,6 +101,7 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
             actions = jnp.clip(actions, -1.0, 1.0)
             states = jax.vmap(env.step)(states, actions)
             trace = (states.data.qpos[:, :2], agents.node) + ((actions,) if record_actions else ())
+            tick(progress, t, steps, every)
             return (states, agents), trace
 
         (states, agents), trace = jax.lax.scan(body, (states, agents), jnp.arange(steps))
@@ -109,7 +114,7 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
     return run
 
 
-def _flat_rollout(env, agent: Agent, steps: int, record_actions: bool):
+def _flat_rollout(env, agent: Agent, steps: int, record_actions: bool, progress, every: int):
     """The program of an agent without a quasimetric (``agent.dist is None``): its controller aimed
     at the goal at every step, the graph ignored; outputs as :func:`make_rollout`'s (nothing pruned,
     ``node`` -1)."""
@@ -126,6 +131,7 @@ def _flat_rollout(env, agent: Agent, steps: int, record_actions: bool):
             actions = jnp.clip(actions, -1.0, 1.0)
             states = jax.vmap(env.step)(states, actions)
             trace = (states.data.qpos[:, :2], jnp.full((b,), -1, jnp.int32)) + ((actions,) if record_actions else ())
+            tick(progress, t, steps, every)
             return states, trace
 
         states, trace = jax.lax.scan(body, states, jnp.arange(steps))

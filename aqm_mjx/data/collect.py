@@ -37,6 +37,7 @@ from aqm_mjx import envs, files
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import expert
 from aqm_mjx.envs import mazes
+from aqm_mjx.progress import BAR_FORMAT, ChunkBar, tick
 
 STYLES = ('navigate', 'stitch', 'explore')
 STITCH_CELLS = 4  # BFS steps from the start cell to a stitch goal
@@ -168,10 +169,13 @@ def _noisy_xy(key, ij):
     return xy + jax.random.uniform(key, (2,), minval=-noise, maxval=noise)
 
 
-def episode_fn(env, style: str, steps: int, noise: float) -> Callable[[jax.Array], dict]:
+def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Callable] = None
+               ) -> Callable[[jax.Array], dict]:
     """A pure, jittable, vmappable function ``key -> one episode`` of OGBench-style data.
 
     ``env`` must be built with ``terminate_at_goal=False`` and ``max_episode_steps >= steps``.
+    ``progress``: a host hook given the steps done every :data:`aqm_mjx.progress.EVERY` steps
+    (once per call under ``vmap``: the step count is not batched).
 
     Returns:
         ``f(key) -> dict`` with ``observations [steps, obs_size]``, ``actions [steps, action_size]``,
@@ -234,6 +238,7 @@ def episode_fn(env, style: str, steps: int, noise: float) -> Callable[[jax.Array
                 reached = jnp.maximum(reached, hit.astype(jnp.int32))
             q = state.data.qpos
             record['upright'] = (1 - 2 * (q[4] ** 2 + q[5] ** 2)) > 0 if ant else jnp.ones((), bool)
+            tick(progress, t, steps)
             return (state, key, direction, reached), record
 
         init = (state, k_loop, jnp.array([1.0, 0.0]), jnp.zeros((), jnp.int32))
@@ -264,7 +269,7 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     Args:
         cfg: what to collect (see :class:`CollectConfig`).
         physics: MJX physics overrides for :func:`aqm_mjx.envs.make` (e.g. ``{'iterations': 4}``).
-        progress: show a progress bar over chunks.
+        progress: show a progress bar over episodes; it moves every few dozen steps within a chunk.
     Returns:
         :class:`CollectResult` with ``train``/``val`` dicts of ``observations``, ``actions``,
         ``terminals``, ``qpos``, ``qvel``, and ``stats`` (timings, goals reached, flips).
@@ -273,7 +278,9 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     env = envs.make(cfg.env, max_episode_steps=cfg.steps, terminate_at_goal=False, **(physics or {}))
     total = cfg.episodes + cfg.val_episodes
     batch = min(int(cfg.batch), total)
-    run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise)))
+    bar = _progress(total, f'collect {cfg.env} {cfg.style}', progress)
+    ticks = ChunkBar(bar)
+    run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise, progress=ticks)))
     base = jax.random.PRNGKey(cfg.seed)
     n, t = total * cfg.steps, cfg.steps
     nq, nv = env.mj_model.nq, env.mj_model.nv
@@ -282,23 +289,23 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     reached = np.empty(total, np.int64)
     flipped = np.empty(total, bool)
     chunks = range(0, total, batch)
-    bar = _progress(len(chunks), f'collect {cfg.env} {cfg.style}', progress)
     t0 = time.perf_counter()
     first_chunk_s = None  # the first call compiles, then runs one chunk
     for first in chunks:
         ids = jnp.arange(first, first + batch)
         keys = jax.vmap(lambda e: jax.random.fold_in(base, e))(ids)
+        m = min(batch, total - first)
+        ticks.start(m, t)
         out = jax.device_get(run(keys))
+        ticks.finish()
         if first_chunk_s is None:
             first_chunk_s = time.perf_counter() - t0
-        m = min(batch, total - first)
         rows = slice(first * t, (first + m) * t)
         for k in buf:
             buf[k][rows] = out[k][:m].reshape(m * t, -1)
         reached[first:first + m] = out['goals_reached'][:m]
         flipped[first:first + m] = ~out['upright'][:m, -1]
         if bar is not None:
-            bar.update(1)
             bar.set_postfix(transitions=(first + m) * t)
     if bar is not None:
         bar.close()
@@ -316,7 +323,7 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
                  wall_s=round(wall, 2), first_chunk_s=round(first_chunk_s, 2),
                  steady_transitions_per_s=round(steady / run_s, 1) if steady and run_s > 0 else None,
                  goals_reached_mean=float(reached.mean()), flipped_episodes=int(flipped.sum()),
-                 backend=jax.default_backend())
+                 progress_callbacks=ticks.calls, backend=jax.default_backend())
     return CollectResult(train=train, val=val, config=cfg, stats=stats)
 
 
@@ -374,4 +381,4 @@ def _progress(total, desc, enabled):
         return None
     from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
-    return tqdm(total=total, desc=desc, unit='chunk')
+    return tqdm(total=total, desc=desc, unit='ep', bar_format=BAR_FORMAT)

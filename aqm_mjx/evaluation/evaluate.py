@@ -24,6 +24,7 @@ from aqm_mjx.agent.rules import MAX_LEGS, AgentConfig
 from aqm_mjx.evaluation import protocol as proto
 from aqm_mjx.interface import Agent
 from aqm_mjx.mapping.graph import Graph
+from aqm_mjx.progress import BAR_FORMAT, ChunkBar, Hook
 
 
 def device_mesh(devices=None) -> Mesh:
@@ -63,11 +64,15 @@ class Results(NamedTuple):
     n_legs: np.ndarray  # int32 [E] legs completed (the first MAX_LEGS are in ``legs``)
 
 
+HOOK = Hook()  # the host callback compiled into every evaluation program; evaluate() points it at its bar
+
+
 def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional[Mesh] = None):
     """The jitted evaluation of one chunk: ``(aux, graph, inputs) -> dict`` of
     :func:`aqm_mjx.agent.rollout.make_rollout`, the environment axis sharded over ``mesh``
-    (``aux`` and ``graph`` replicated)."""
-    run = make_rollout(env, agent, cfg, steps)
+    (``aux`` and ``graph`` replicated). It reports its steps to :data:`HOOK` every
+    :data:`aqm_mjx.progress.EVERY` control steps, so the bar moves during a chunk."""
+    run = make_rollout(env, agent, cfg, steps, progress=HOOK)
     if mesh is None:
         return jax.jit(run)
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec('env'))
@@ -116,33 +121,39 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     if progress:
         from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
-        bar = tqdm(total=n, desc=f'evaluate {env.name}', unit='ep')
+        bar = tqdm(total=n, desc=f'evaluate {env.name}', unit='ep', bar_format=BAR_FORMAT)
+    ticks = ChunkBar(bar)
+    HOOK.target = ticks
     t0 = time.perf_counter()
-    for c in range(n_chunks):
-        rows = np.arange(c * chunk, (c + 1) * chunk)
-        real = rows < n
-        rows = np.where(real, rows, 0)  # padding repeats row 0; its results are dropped
-        inputs = jax.tree.map(lambda x: put_global(x, shard), proto.table_inputs(eps, key, rows))
-        t_c = time.perf_counter()
-        out = program(aux, graph, inputs)
-        success_c, pruned_c = fetch_global(out['success']) > 0, fetch_global(out['pruned'])
-        timing.setdefault('first_chunk_s', time.perf_counter() - t_c)
-        success[rows[real]] = success_c[real]
-        pruned[rows[real]] = pruned_c[real]
-        legs[rows[real]], n_legs[rows[real]] = fetch_global(out['legs'])[real], fetch_global(out['n_legs'])[real]
-        wanted = [(i, rows[i]) for i in np.flatnonzero(real) if rows[i] in keep]
-        if wanted:
-            xy, node, cuts, goal = (fetch_global(out[k]) for k in ('xy', 'node', 'cuts', 'goal_xy'))
-            for i, r in wanted:
-                a, v, t = keep[r]
-                traces[(eps.specs[a][0], list(eps.variants)[v], int(t))] = dict(
-                    xy=xy[:, i], node=node[:, i], cuts=cuts[i][cuts[i, :, 0] >= 0], goal_xy=goal[i],
-                    success=bool(success_c[i]), pruned=int(pruned_c[i]))
-        if bar is not None:
-            bar.update(int(real.sum()))
+    try:
+        for c in range(n_chunks):
+            rows = np.arange(c * chunk, (c + 1) * chunk)
+            real = rows < n
+            rows = np.where(real, rows, 0)  # padding repeats row 0; its results are dropped
+            inputs = jax.tree.map(lambda x: put_global(x, shard), proto.table_inputs(eps, key, rows))
+            t_c = time.perf_counter()
+            ticks.start(int(real.sum()), eps.steps)
+            out = program(aux, graph, inputs)
+            success_c, pruned_c = fetch_global(out['success']) > 0, fetch_global(out['pruned'])
+            ticks.finish()
+            timing.setdefault('first_chunk_s', time.perf_counter() - t_c)
+            success[rows[real]] = success_c[real]
+            pruned[rows[real]] = pruned_c[real]
+            legs[rows[real]], n_legs[rows[real]] = fetch_global(out['legs'])[real], fetch_global(out['n_legs'])[real]
+            wanted = [(i, rows[i]) for i in np.flatnonzero(real) if rows[i] in keep]
+            if wanted:
+                xy, node, cuts, goal = (fetch_global(out[k]) for k in ('xy', 'node', 'cuts', 'goal_xy'))
+                for i, r in wanted:
+                    a, v, t = keep[r]
+                    traces[(eps.specs[a][0], list(eps.variants)[v], int(t))] = dict(
+                        xy=xy[:, i], node=node[:, i], cuts=cuts[i][cuts[i, :, 0] >= 0], goal_xy=goal[i],
+                        success=bool(success_c[i]), pruned=int(pruned_c[i]))
+    finally:
+        HOOK.target = None  # a later program (or a failed chunk) never drives this bar
     if bar is not None:
         bar.close()
     timing['total_s'] = time.perf_counter() - t0
+    timing['progress_callbacks'] = ticks.calls
     timing['env_steps_per_s_after_first_chunk'] = (
         (n_chunks - 1) * chunk * eps.steps / (timing['total_s'] - timing['first_chunk_s']) if n_chunks > 1 else None)
     rates, prunes = jax.device_get(proto.success_rates(eps, success, pruned))
