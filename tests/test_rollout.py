@@ -169,6 +169,15 @@ def test_pruning_reroutes_the_point_around_a_closed_corridor_and_compiles_once()
     assert n[10:20].min() >= 1 and (legs[logged][:, 0] > 0).all() and (legs[logged][:, 1] >= 1).all()
     assert (legs[logged][:, 2] <= legs[logged][:, 1]).all()
     assert out2['pruned'][10:20].max() == 0  # the calibration rows (no pruning) never cut
+    # an episode that ends at the goal freezes its agent: no target change (nor cut) after the end
+    ended = 0
+    for i in np.flatnonzero(out2['success']):
+        moving = np.any(out2['xy'][1:, i] != out2['xy'][:-1, i], axis=-1)
+        k = np.flatnonzero(moving).max() + 1  # the step after which the point no longer moves
+        if k < 350:
+            ended += 1
+            assert (out2['node'][k:, i] == out2['node'][k, i]).all(), i
+    assert ended >= 10
 
 
 @pytest.mark.slow  # about 3 minutes on the 2-core CPU

@@ -55,6 +55,12 @@ def episode_inputs(keys, task_ids, grids, kappa, use_graph, patience=0.0) -> Epi
                          patience=jnp.broadcast_to(jnp.asarray(patience, jnp.float32), (n,)))
 
 
+def freeze(live: jax.Array, old, new):
+    """``new`` where ``live [B]``, else ``old`` (leaf by leaf); a frozen agent asks for no replan."""
+    new = new.replace(needs_replan=new.needs_replan & live)
+    return jax.tree.map(lambda o, n: jnp.where(live.reshape(live.shape + (1,) * (n.ndim - 1)), n, o), old, new)
+
+
 def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions: bool = False,
                  progress: Optional[Callable] = None, every: int = EVERY):
     """Build the jittable episode program of ``agent`` in ``env``.
@@ -89,9 +95,12 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
 
         def body(carry, t):
             states, agents = carry
-            # PLAN: switch, time and prune per environment, then replan where an edge was cut
-            agents = jax.vmap(lambda a, s, kp, p: agent_step(d, graph, cfg, a, s, kp, p))(
+            # PLAN: switch, time and prune per environment, then replan where an edge was cut; an
+            # environment whose episode is done (at the goal, or at its limit) keeps its agent as it
+            # was, so that nothing is timed, cut or logged after the end
+            stepped = jax.vmap(lambda a, s, kp, p: agent_step(d, graph, cfg, a, s, kp, p))(
                 agents, enc(states.obs), kappa, patience)
+            agents = freeze(~states.done, agents, stepped)
             agents = replan(agents, slots)
             agents = jax.vmap(redirect)(agents, kappa, patience)
             sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], states.goal)
