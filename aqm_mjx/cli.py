@@ -287,7 +287,9 @@ def cmd_compare(a):
 
     out = a.out or os.path.join('runs', f'compare-{a.env}-{a.style}')
     compare.compare(a.env, a.methods, a.seeds, out, preset=a.preset, dataset=a.dataset, style=a.style,
-                    collect_episodes=a.collect_episodes, collect_batch=a.collect_batch, overrides=a.set or [],
+                    collect_episodes=a.collect_episodes, collect_batch=a.collect_batch,
+                    overrides=(a.set or []) + ([f'protocol.backend={a.backend}'] if a.backend else [])
+                    + ([f'protocol.workers={a.workers}'] if a.workers is not None else []),
                     shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed)
     return 0
 
@@ -445,6 +447,11 @@ def main(argv=None):
     k.add_argument('--collect-episodes', type=int, default=100, help='episodes to collect')
     k.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
     k.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
+    k.add_argument('--backend', default=None, choices=['mjx', 'ogbench'],
+                   help="physics of the evaluation: 'mjx' (default) or 'ogbench' (OGBench's own environments on "
+                        'the host; same as --set protocol.backend=ogbench)')
+    k.add_argument('--workers', type=int, default=None, help="with --backend ogbench: processes stepping the "
+                                                             'environments (default 0: this process)')
     k.add_argument('--out', default=None, help='comparison folder (default runs/compare-ENV-STYLE)')
     k.set_defaults(fn=cmd_compare)
     a = p.parse_args(argv)

@@ -88,7 +88,8 @@ def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig
     if sig not in programs:
         steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans,
                               patience=cfg.agent.patience).steps
-        programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh())
+        programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh(), cfg.protocol.backend,
+                                     cfg.protocol.workers)
     return programs[sig]
 
 

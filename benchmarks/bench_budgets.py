@@ -65,8 +65,9 @@ def one_seed(ckpt, a, log=print) -> dict:
     proto = dataclasses.replace(cfg.protocol, episodes=a.episodes, ablations=ablations)
     res = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, patience=0.0), proto, variants,
                             key=k_eval, progress=a.progress)
-    names = {'aqm': f'fixed, preset kappa {cfg.agent.kappa:g}', ablations[0]: f'fixed, calibrated kappa {kappa_c}',
-             ablations[1]: f'stall, calibrated patience {patience_c:g}', 'no-pruning': 'no pruning', 'flat': 'flat'}
+    # rows are named by rule, not by the calibrated value, which differs from seed to seed
+    names = {'aqm': f'fixed, preset kappa {cfg.agent.kappa:g}', ablations[0]: 'fixed, calibrated kappa',
+             ablations[1]: 'stall, calibrated patience', 'no-pruning': 'no pruning', 'flat': 'flat'}
     rows = {}
     for i, ag in enumerate(res.agents):
         for j, v in enumerate(res.variants):
@@ -92,7 +93,14 @@ def main():
     a = p.parse_args()
     if a.out:
         files.check_writable(a.out, what='the benchmark')
-    seeds = [one_seed(c, a) for c in a.checkpoint]
+    seeds = []
+    for c in a.checkpoint:
+        seeds.append(one_seed(c, a))
+        if a.out:  # each seed is kept as it ends: a late failure loses nothing measured
+            os.makedirs(a.out, exist_ok=True)
+            s = seeds[-1]
+            files.write_json(os.path.join(a.out, f'seed_{len(seeds) - 1}.json'),
+                             dict(s, rows=[dict(rule=r, layout=v, **x) for (r, v), x in s['rows'].items()]))
     variants = seeds[0]['variants']
     print(f'\n{len(seeds)} seed(s) x {a.episodes} episodes per task; success pooled over seeds [95% Wilson], '
           'per-seed means, legs cut per episode')

@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import Any, Callable, NamedTuple, Optional
 
 import jax
+import numpy as np
 import jax.numpy as jnp
 
 from aqm_mjx.agent.rules import MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, redirect, replan
@@ -61,9 +62,64 @@ def freeze(live: jax.Array, old, new):
     return jax.tree.map(lambda o, n: jnp.where(live.reshape(live.shape + (1,) * (n.ndim - 1)), n, o), old, new)
 
 
+class Decide(NamedTuple):
+    """The agent's side of a control step, apart from the physics, so that a host-stepped backend
+    (:mod:`aqm_mjx.envs.host`) runs the same decisions as the MJX program. Both functions are pure
+    and batched over a leading ``[B]``; jit them at the outside.
+
+    ``init(aux, graph, obs [B, O], goal [B, O], inputs) -> agents``;
+    ``act(aux, graph, agents, obs [B, O], goal [B, O], done [B], t, inputs) -> (actions [B, A] in
+    [-1, 1], agents)``. An agent without a quasimetric keeps ``agents`` as an empty tuple.
+    """
+
+    init: Callable
+    act: Callable
+
+
+def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
+    """The PLAN and ACT half of a control step of ``agent`` (see :func:`make_rollout`)."""
+    slots = cfg.slots
+    if agent.dist is None:
+        def init_flat(aux, graph, obs, goal, inputs):
+            return ()
+
+        def act_flat(aux, graph, agents, obs, goal, done, t, inputs):
+            keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(inputs.keys[:, 1])
+            actions = jax.vmap(lambda o, g, k: agent.controller(aux, o, g, t, k))(obs, goal, keys_t)
+            return jnp.clip(actions, -1.0, 1.0), agents
+
+        return Decide(init_flat, act_flat)
+
+    def init(aux, graph, obs, goal, inputs):
+        d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
+        enc = jax.vmap(lambda o: agent.encode(aux, o))
+        return jax.vmap(lambda s, g, kp, u, p: agent_init(d, graph, s, g, kp, u, p))(
+            enc(obs), enc(goal), inputs.kappa, inputs.use_graph, inputs.patience)
+
+    def act(aux, graph, agents, obs, goal, done, t, inputs):
+        d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
+        kappa, patience = inputs.kappa, inputs.patience
+        enc = jax.vmap(lambda o: agent.encode(aux, o))
+        # PLAN: switch, time and prune per environment, then replan where an edge was cut; an
+        # environment whose episode is done (at the goal, or at its limit) keeps its agent as it
+        # was, so that nothing is timed, cut or logged after the end
+        stepped = jax.vmap(lambda a, s, kp, p: agent_step(d, graph, cfg, a, s, kp, p))(agents, enc(obs), kappa, patience)
+        agents = freeze(~done, agents, stepped)
+        agents = replan(agents, slots)
+        agents = jax.vmap(redirect)(agents, kappa, patience)
+        sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], goal)
+        # ACT
+        keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(inputs.keys[:, 1])
+        actions = jax.vmap(lambda o, g, k: agent.controller(aux, o, g, t, k))(obs, sub, keys_t)
+        return jnp.clip(actions, -1.0, 1.0), agents
+
+    return Decide(init, act)
+
+
 def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions: bool = False,
                  progress: Optional[Callable] = None, every: int = EVERY):
-    """Build the jittable episode program of ``agent`` in ``env``.
+    """Build the jittable episode program of ``agent`` in ``env``: per control step the agent's
+    :func:`make_decide` half, then ``env.step``.
 
     Args:
         env: a :class:`aqm_mjx.envs.MazeEnv`.
@@ -80,35 +136,18 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
         legs: d, steps, longest stall; -1 padded), ``n_legs [B]``, ``xy [T, B, 2]``, ``node [T, B]``
         and ``goal_xy [B, 2]``.
     """
-    slots = cfg.slots
     if agent.dist is None:
         return _flat_rollout(env, agent, steps, record_actions, progress, every)
+    decide = make_decide(agent, cfg)
 
     def run(aux: Any, graph: Graph, inputs: EpisodeInputs):
-        d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
-        kappa, patience = inputs.kappa, inputs.patience
-        k_reset, k_act = inputs.keys[:, 0], inputs.keys[:, 1]
-        states = jax.vmap(env.reset)(k_reset, inputs.task_ids, inputs.grids)
-        enc = jax.vmap(lambda o: agent.encode(aux, o))
-        agents = jax.vmap(lambda s, g, kp, u, p: agent_init(d, graph, s, g, kp, u, p))(
-            enc(states.obs), enc(states.goal), kappa, inputs.use_graph, patience)
+        states = jax.vmap(env.reset)(inputs.keys[:, 0], inputs.task_ids, inputs.grids)
+        agents = decide.init(aux, graph, states.obs, states.goal, inputs)
 
         def body(carry, t):
             states, agents = carry
-            # PLAN: switch, time and prune per environment, then replan where an edge was cut; an
-            # environment whose episode is done (at the goal, or at its limit) keeps its agent as it
-            # was, so that nothing is timed, cut or logged after the end
-            stepped = jax.vmap(lambda a, s, kp, p: agent_step(d, graph, cfg, a, s, kp, p))(
-                agents, enc(states.obs), kappa, patience)
-            agents = freeze(~states.done, agents, stepped)
-            agents = replan(agents, slots)
-            agents = jax.vmap(redirect)(agents, kappa, patience)
-            sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], states.goal)
-            # ACT and STEP
-            keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)
-            actions = jax.vmap(lambda o, g, k: agent.controller(aux, o, g, t, k))(states.obs, sub, keys_t)
-            actions = jnp.clip(actions, -1.0, 1.0)
-            states = jax.vmap(env.step)(states, actions)
+            actions, agents = decide.act(aux, graph, agents, states.obs, states.goal, states.done, t, inputs)
+            states = jax.vmap(env.step)(states, actions)  # STEP
             trace = (states.data.qpos[:, :2], agents.node) + ((actions,) if record_actions else ())
             tick(progress, t, steps, every)
             return (states, agents), trace
@@ -128,16 +167,15 @@ def _flat_rollout(env, agent: Agent, steps: int, record_actions: bool, progress,
     at the goal at every step, the graph ignored; outputs as :func:`make_rollout`'s (nothing pruned,
     ``node`` -1)."""
 
+    act = make_decide(agent, AgentConfig()).act
+
     def run(aux: Any, graph, inputs: EpisodeInputs):
         del graph
-        k_reset, k_act = inputs.keys[:, 0], inputs.keys[:, 1]
-        states = jax.vmap(env.reset)(k_reset, inputs.task_ids, inputs.grids)
+        states = jax.vmap(env.reset)(inputs.keys[:, 0], inputs.task_ids, inputs.grids)
         b = inputs.task_ids.shape[0]
 
         def body(states, t):
-            keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(k_act)
-            actions = jax.vmap(lambda o, g, k: agent.controller(aux, o, g, t, k))(states.obs, states.goal, keys_t)
-            actions = jnp.clip(actions, -1.0, 1.0)
+            actions, _ = act(aux, None, (), states.obs, states.goal, states.done, t, inputs)
             states = jax.vmap(env.step)(states, actions)
             trace = (states.data.qpos[:, :2], jnp.full((b,), -1, jnp.int32)) + ((actions,) if record_actions else ())
             tick(progress, t, steps, every)
@@ -151,4 +189,58 @@ def _flat_rollout(env, agent: Agent, steps: int, record_actions: bool, progress,
             out['actions'] = trace[2]
         return out
 
+    return run
+
+
+def make_host_rollout(envs, agent: Agent, cfg: AgentConfig, steps: int, progress: Optional[Callable] = None,
+                      every: int = EVERY):
+    """:func:`make_rollout`'s program with the physics on the host: ``envs`` (an
+    :class:`aqm_mjx.envs.ogbench_env.OGBenchEnvs`, OGBench's own environments) step in lockstep and
+    the agent's :func:`make_decide` half runs as one jitted, batched call per control step; the agent
+    state stays a batched pytree on the device.
+
+    Episode ``i`` is reset with an integer seed drawn from its reset key (``inputs.keys[i, 0]``),
+    so it depends on its key alone; its actions use the same keys as the MJX program's.
+    Returns ``run(aux, graph, inputs) -> dict`` with :func:`make_rollout`'s outputs (numpy).
+    """
+    decide = make_decide(agent, cfg)
+    init, act = jax.jit(decide.init), jax.jit(decide.act)
+    plans = agent.dist is not None
+    seed_of = jax.jit(jax.vmap(lambda k: jax.random.randint(k, (), 0, jnp.iinfo(jnp.int32).max)))
+
+    def run(aux: Any, graph, inputs: EpisodeInputs) -> dict:
+        seeds = np.asarray(seed_of(inputs.keys[:, 0]))
+        obs, goal, goal_xy = envs.reset(seeds, np.asarray(inputs.task_ids), np.asarray(inputs.grids))
+        b = len(seeds)
+        goal_d = jnp.asarray(goal)
+        agents = init(aux, graph, jnp.asarray(obs), goal_d, inputs)
+        xy, node = np.zeros((steps, b, 2), np.float32), np.full((steps, b), -1, np.int32)
+        done = np.zeros(b, bool)
+        for t in range(steps):
+            actions, agents = act(aux, graph, agents, jnp.asarray(obs), goal_d, jnp.asarray(done), jnp.int32(t),
+                                  inputs)
+            obs, xy[t], success, done = envs.step(np.asarray(actions))
+            if plans:
+                node[t] = np.asarray(agents.node)
+            if progress is not None and ((t + 1) % every == 0 or t + 1 == steps):
+                progress(t + 1)
+        if not plans:
+            pruned = np.zeros(b, np.int32)
+            cuts, legs = np.full((b, MAX_CUTS, 2), -1, np.int32), np.full((b, MAX_LEGS, 3), -1.0, np.float32)
+            n_legs = np.zeros(b, np.int32)
+        else:
+            pruned, cuts, legs, n_legs = (np.asarray(x) for x in (agents.pruned, agents.cuts, agents.legs,
+                                                                 agents.n_legs))
+        return dict(success=success.astype(np.float32), pruned=pruned, cuts=cuts, legs=legs, n_legs=n_legs, xy=xy,
+                    node=node, goal_xy=goal_xy)
+
+    def warm(aux: Any, graph, inputs: EpisodeInputs) -> None:
+        """Compile the agent's calls for this batch shape (no physics): benchmarks time it apart."""
+        b, o = inputs.task_ids.shape[0], envs.obs_size
+        z = jnp.zeros((b, o), jnp.float32)
+        agents = init(aux, graph, z, z, inputs)
+        jax.block_until_ready(act(aux, graph, agents, z, z, jnp.zeros(b, bool), jnp.int32(0), inputs))
+        jax.block_until_ready(seed_of(inputs.keys[:, 0]))
+
+    run.warm = warm
     return run

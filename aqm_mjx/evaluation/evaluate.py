@@ -19,7 +19,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from aqm_mjx.agent.rollout import make_rollout
+from aqm_mjx.agent.rollout import make_host_rollout, make_rollout
 from aqm_mjx.agent.rules import MAX_LEGS, AgentConfig
 from aqm_mjx.evaluation import protocol as proto
 from aqm_mjx.interface import Agent
@@ -67,11 +67,37 @@ class Results(NamedTuple):
 HOOK = Hook()  # the host callback compiled into every evaluation program; evaluate() points it at its bar
 
 
-def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional[Mesh] = None):
-    """The jitted evaluation of one chunk: ``(aux, graph, inputs) -> dict`` of
-    :func:`aqm_mjx.agent.rollout.make_rollout`, the environment axis sharded over ``mesh``
-    (``aux`` and ``graph`` replicated). It reports its steps to :data:`HOOK` every
-    :data:`aqm_mjx.progress.EVERY` control steps, so the bar moves during a chunk."""
+class HostProgram:
+    """The evaluation of one chunk in OGBench's own environments (``backend='ogbench'``):
+    :func:`aqm_mjx.agent.rollout.make_host_rollout` over an
+    :class:`~aqm_mjx.envs.ogbench_env.OGBenchEnvs` kept across chunks (and across the checkpoints
+    that share this program); ``close()`` ends its worker processes."""
+
+    def __init__(self, env, agent: Agent, cfg: AgentConfig, steps: int, workers: int = 0):
+        from aqm_mjx.envs.ogbench_env import OGBenchEnvs  # pylint: disable=import-outside-toplevel
+
+        self.envs = OGBenchEnvs(env.name, max_episode_steps=steps, workers=workers)
+        self.run = make_host_rollout(self.envs, agent, cfg, steps, progress=HOOK)
+
+    def __call__(self, aux, graph, inputs) -> dict:
+        return self.run(aux, graph, inputs)
+
+    def close(self) -> None:
+        self.envs.close()
+
+
+def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional[Mesh] = None,
+                 backend: str = 'mjx', workers: int = 0):
+    """The evaluation of one chunk: ``(aux, graph, inputs) -> dict`` of
+    :func:`aqm_mjx.agent.rollout.make_rollout`. ``backend='mjx'``: one jitted program, the
+    environment axis sharded over ``mesh`` (``aux`` and ``graph`` replicated); ``'ogbench'``: a
+    :class:`HostProgram` (OGBench's environments on the host, ``workers`` processes). Either reports
+    its steps to :data:`HOOK` every :data:`aqm_mjx.progress.EVERY` control steps, so the bar moves
+    during a chunk."""
+    if backend == 'ogbench':
+        return HostProgram(env, agent, cfg, steps, workers)
+    if backend != 'mjx':
+        raise ValueError(f"unknown backend {backend!r}; expected 'mjx' or 'ogbench'")
     run = make_rollout(env, agent, cfg, steps, progress=HOOK)
     if mesh is None:
         return jax.jit(run)
@@ -96,7 +122,8 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
         variants: ``{name: grid [H, W]}``; default ``{'base': the maze's layout}``.
         key: base of the episode keys (default ``PRNGKey(0)``).
         mesh: devices to shard the environments over (default: all devices).
-        program: a compiled chunk from :func:`make_program` to reuse (its ``steps`` and ``mesh``).
+        program: a compiled chunk from :func:`make_program` to reuse (its ``steps``, ``mesh`` and
+            backend); by default one is made for ``protocol.backend`` (and closed at the end).
     """
     eps = proto.plan_episodes(env, protocol, cfg.kappa, variants, plans=agent.plans, patience=cfg.patience)
     table = eps.table
@@ -104,7 +131,9 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     n_dev = mesh.devices.size
     chunk = min(int(protocol.envs), len(table.task))
     chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count
-    program = make_program(env, agent, cfg, eps.steps, mesh) if program is None else program
+    owned = program is None
+    if owned:
+        program = make_program(env, agent, cfg, eps.steps, mesh, protocol.backend, protocol.workers)
     key = jax.random.PRNGKey(0) if key is None else key
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec('env'))
     aux, graph = jax.device_put((agent.aux, graph), rep)
@@ -150,9 +179,12 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
                         success=bool(success_c[i]), pruned=int(pruned_c[i]))
     finally:
         HOOK.target = None  # a later program (or a failed chunk) never drives this bar
+        if owned and hasattr(program, 'close'):
+            program.close()
     if bar is not None:
         bar.close()
     timing['total_s'] = time.perf_counter() - t0
+    timing['backend'] = 'ogbench' if isinstance(program, HostProgram) else 'mjx'
     timing['progress_callbacks'] = ticks.calls
     timing['env_steps_per_s_after_first_chunk'] = (
         (n_chunks - 1) * chunk * eps.steps / (timing['total_s'] - timing['first_chunk_s']) if n_chunks > 1 else None)

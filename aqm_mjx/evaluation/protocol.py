@@ -24,6 +24,7 @@ from aqm_mjx.config import option
 from aqm_mjx.envs import mazes
 
 AQM, FLAT, NO_PRUNING = 'aqm', 'flat', 'no-pruning'
+BACKENDS = ('mjx', 'ogbench')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,10 +38,18 @@ class ProtocolConfig:
     ablations: tuple[str, ...] = option((NO_PRUNING, FLAT), "agents run beside AQM on the same episodes: "
                                         "'no-pruning', 'flat', 'kappa=X' (the fixed budget at slack X), "
                                         "'stall=P' (the stall rule at patience P)")
+    backend: str = option('mjx', "physics of the episodes: 'mjx' (our MJX copy: one jitted program, any device) or "
+                          "'ogbench' (OGBench's own MuJoCo environments stepped on the host, the agent one jitted "
+                          "call per control step)", choices=BACKENDS)
+    workers: int = option(0, "backend 'ogbench': processes that step the environments (0: this process)")
 
     def __post_init__(self):
         cfg_lib.check_types(self)
         cfg_lib.check_positive_int(self, 'episodes', 'envs')
+        if self.backend not in BACKENDS:
+            raise ValueError(f'unknown ProtocolConfig.backend {self.backend!r}; expected one of {", ".join(BACKENDS)}')
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
+            raise ValueError(f'ProtocolConfig.workers must be an integer >= 0; got {self.workers!r}')
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 0:
             raise ValueError(f'ProtocolConfig.horizon must be an integer >= 0 (0: the limit); got {self.horizon!r}')
         repeated = sorted({t for t in self.tasks if self.tasks.count(t) > 1})
