@@ -6,13 +6,15 @@ One checkpoint, one map (``stage_keys(PRNGKey(--seed))``, as ``aqm-mjx evaluate`
 table (AQM, no pruning and the flat policy x every task x ``--episodes``, the same episode keys)
 run on
 
-- ``mjx``: our MJX copy of the maze, the whole chunk one jitted program (compiled ahead of time and
-  timed apart);
+- ``mjx``: our MJX copy of the maze, a chunk of ``--envs`` environments one jitted program (its
+  compile time taken out of the first chunk using the later chunks' rate);
 - ``ogbench``: OGBench's own environments (plain MuJoCo) stepped on the host, the agent one jitted,
   batched call per control step (its calls compiled apart, by a warm-up without physics);
   ``--workers`` processes step the environments;
-- OGBench's serial loop: one ``antmaze`` environment of OGBench, the same networks' flat controller
-  called (jitted, batch 1) once per control step, as OGBench's evaluation runs (``--serial-steps``).
+- OGBench's serial loop: one OGBench environment, the agent called (jitted, batch 1) once per control
+  step, as OGBench's evaluation runs (``--serial-steps`` steps): with the whole AQM agent (encoder,
+  switching, budgets, pruning, replanning, controller: what the backend runs), and with the flat
+  controller alone (one network: a lighter agent than the backend's).
 
 Speed: wall time of the same table on each backend (compile apart) and their ratio; environment
 steps/s (for the host backends only steps of unfinished episodes count). Agreement: per row, each
@@ -52,31 +54,60 @@ def newcombe(k1: int, n1: int, k2: int, n2: int) -> tuple[float, float]:
     return d - math.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2), d + math.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2)
 
 
-def run_backend(backend, workers, env, trained, graph, cfg, eps, k_eval, progress):
-    """Compile apart, then the whole table in one chunk; returns (Results, compile_s, run_s, env_steps)."""
-    protocol = dataclasses.replace(cfg.protocol, backend=backend, workers=workers, envs=len(eps.table.task))
+def serial_agent_rate(env, trained, graph, cfg, eps, k_eval, n_steps: int) -> dict:
+    """OGBench's serial loop with the whole agent: one OGBench environment, the agent's jitted step
+    (:func:`~aqm_mjx.agent.rollout.make_decide`, batch 1) once per control step, the AQM row's
+    episodes one after another until ``n_steps`` environment steps."""
+    from aqm_mjx.agent.rollout import make_host_rollout  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.envs.ogbench_env import OGBenchEnvs  # pylint: disable=import-outside-toplevel
+
+    rows = np.flatnonzero(eps.table.agent == 0)
+    with OGBenchEnvs(env.name, max_episode_steps=eps.steps) as one:
+        run = make_host_rollout(one, trained.agent, cfg.agent, eps.steps)
+        run.warm(trained.agent.aux, graph, proto.table_inputs(eps, k_eval, rows[:1]))
+        t0, i = time.perf_counter(), 0
+        while one.live_steps < n_steps:
+            run(trained.agent.aux, graph, proto.table_inputs(eps, k_eval, rows[i % len(rows):][:1]))
+            i += 1
+        dt = time.perf_counter() - t0
+    return dict(row='ogbench loop, whole AQM agent (1 env, jitted agent step per control step)',
+                steps=one.live_steps, episodes=i, run_s=round(dt, 2), control_steps_per_s=round(one.live_steps / dt, 1))
+
+
+def run_backend(backend, workers, env, trained, graph, cfg, eps, k_eval, envs_per_chunk, progress):
+    """The table in chunks of ``envs_per_chunk``; returns (Results, compile_s, run_s, env_steps).
+
+    mjx: the jitted program compiles inside the first chunk; compile = first chunk - the time the
+    later chunks' rate gives it, run = total - compile. (Ahead-of-time compilation is not used: a
+    compiled executable called directly runs on the calling thread, and the progress callback of a
+    large batch then waits for the interpreter lock that thread holds.) ogbench: the agent's calls
+    are compiled by a warm-up without physics, timed apart."""
+    protocol = dataclasses.replace(cfg.protocol, backend=backend, workers=workers, envs=envs_per_chunk)
     mesh = ev.device_mesh()
     program = ev.make_program(env, trained.agent, cfg.agent, eps.steps, mesh, backend, workers)
-    n = len(eps.table.task)
-    chunk = -(-n // mesh.devices.size) * mesh.devices.size
-    rows = np.arange(chunk) % n
-    shard, rep = NamedSharding(mesh, PartitionSpec('env')), NamedSharding(mesh, PartitionSpec())
-    inputs = jax.tree.map(lambda x: ev.put_global(x, shard), proto.table_inputs(eps, k_eval, rows))
-    aux, g = jax.device_put((trained.agent.aux, graph), rep)
-    t0 = time.perf_counter()
-    if backend == 'mjx':
-        program = program.lower(aux, g, inputs).compile()
-    else:
-        program.run.warm(aux, g, inputs)
-    compile_s = time.perf_counter() - t0
+    compile_s = 0.0
+    if backend != 'mjx':
+        chunk = min(envs_per_chunk, len(eps.table.task))
+        shard, rep = NamedSharding(mesh, PartitionSpec('env')), NamedSharding(mesh, PartitionSpec())
+        inputs = jax.tree.map(lambda x: ev.put_global(x, shard), proto.table_inputs(eps, k_eval, np.arange(chunk)))
+        t0 = time.perf_counter()
+        program.run.warm(*jax.device_put((trained.agent.aux, graph), rep), inputs)
+        compile_s = time.perf_counter() - t0
     try:
         res = ev.evaluate(env, trained.agent, graph, cfg.agent, protocol, eps.variants, key=k_eval, program=program,
                           progress=progress)
-        env_steps = program.envs.live_steps if backend != 'mjx' else n * eps.steps
+        env_steps = program.envs.live_steps if backend != 'mjx' else res.timing['chunks'] * res.timing['envs_per_chunk'] * eps.steps
     finally:
         if hasattr(program, 'close'):
             program.close()
-    return res, compile_s, res.timing['total_s'], env_steps
+    run_s = res.timing['total_s']
+    if backend == 'mjx':
+        rate = res.timing['env_steps_per_s_after_first_chunk']
+        if rate is None:
+            raise ValueError('the mjx timing needs at least two chunks: lower --envs')
+        compile_s = res.timing['first_chunk_s'] - res.timing['envs_per_chunk'] * eps.steps / rate
+        run_s -= compile_s
+    return res, compile_s, run_s, env_steps
 
 
 def main():
@@ -85,6 +116,7 @@ def main():
     p.add_argument('--dataset', help="default: the dataset recorded in the run's config.json")
     p.add_argument('--episodes', type=int, default=50, help='episodes per task and row on each backend')
     p.add_argument('--tasks', default='', help='task ids, e.g. 1,2 (default: all)')
+    p.add_argument('--envs', type=int, default=250, help='environments per chunk on both backends (mjx: >= 2 chunks)')
     p.add_argument('--workers', type=int, default=0, help='processes stepping the OGBench environments')
     p.add_argument('--serial-steps', type=int, default=3000, help="control steps of OGBench's serial loop")
     p.add_argument('--backends', nargs='+', default=['mjx', 'ogbench'], choices=proto.BACKENDS)
@@ -109,21 +141,31 @@ def main():
     serial = ogbench_loop_rate(trained, a.serial_steps)
     print(serial, flush=True)
     rows.append(serial)
+    if trained.agent.plans:
+        serial_agent = serial_agent_rate(env, trained, graph, cfg, eps, k_eval, a.serial_steps)
+        print(serial_agent, flush=True)
+        rows.append(serial_agent)
+    else:
+        serial_agent = serial
     for b in a.backends:
         res, compile_s, run_s, env_steps = run_backend(b, a.workers if b == 'ogbench' else 0, env, trained, graph,
-                                                      cfg, eps, k_eval, a.progress)
+                                                      cfg, eps, k_eval, a.envs, a.progress)
         results[b] = res
         row = dict(row=f'backend {b}', workers=a.workers if b == 'ogbench' else 0, episodes=n,
                    compile_s=round(compile_s, 1), run_s=round(run_s, 1), episodes_per_s=round(n / run_s, 2),
                    env_steps=int(env_steps), env_steps_per_s=round(env_steps / run_s, 1))
         print(row, flush=True)
         rows.append(row)
-    if len(results) == 2:
-        rm, ro = rows[-2], rows[-1]
-        speed = dict(row='speed', ogbench_vs_mjx=round(rm['run_s'] / ro['run_s'], 2),
-                     ogbench_vs_serial_loop=round(ro['env_steps_per_s'] / serial['control_steps_per_s'], 2))
+    if 'ogbench' in results:
+        ro = rows[-1]
+        speed = dict(row='speed', ogbench_vs_serial_loop_same_agent=round(
+            ro['env_steps_per_s'] / serial_agent['control_steps_per_s'], 2),
+            ogbench_vs_serial_loop_flat_policy=round(ro['env_steps_per_s'] / serial['control_steps_per_s'], 2))
+        if len(results) == 2:
+            speed['ogbench_vs_mjx'] = round(rows[-2]['run_s'] / ro['run_s'], 2)
         print(speed)
         rows.append(speed)
+    if len(results) == 2:
         mjx, ogb = results['mjx'], results['ogbench']
         print(f'\nagreement, {a.episodes} episodes x {len(eps.task_ids)} tasks per row and backend '
               '[95% Wilson]; difference ogbench - mjx [95% Newcombe]')

@@ -135,9 +135,13 @@ def main():
                         'weights are scaled by 1e-3, so agents prune and replan often; 0: radius 1.0 (typical)')
     p.add_argument('--checkpoint', default=None, help='a trained run folder (default: random cpu-preset weights)')
     p.add_argument('--ogbench-steps', type=int, default=2000)
+    p.add_argument('--impl', default='jax', choices=['jax', 'warp'], help="MJX implementation ('warp': MuJoCo Warp, NVIDIA)")
+    p.add_argument('--iterations', type=int, default=100, help='solver iterations (OGBench: 100)')
+    p.add_argument('--ls-iterations', type=int, default=50, help='line-search iterations (OGBench: 50)')
     p.add_argument('--out', default=None, help='JSON file for the rows')
     a = p.parse_args()
-    env = envs.make(a.env)
+    env = envs.make(a.env, impl=a.impl, iterations=a.iterations, ls_iterations=a.ls_iterations)
+    print(f'{a.env}: impl {a.impl}, Newton {a.iterations}/{a.ls_iterations}', flush=True)
     agent, graph, trained = make_agent(env, a.checkpoint, a.keypoints)
     radius = 1.0
     if a.switch_quantile > 0:

@@ -222,6 +222,11 @@ def make_host_rollout(envs, agent: Agent, cfg: AgentConfig, steps: int, progress
             obs, xy[t], success, done = envs.step(np.asarray(actions))
             if plans:
                 node[t] = np.asarray(agents.node)
+            if done.all():  # every episode ended: the rest of the trace stands still, as MJX's would
+                xy[t + 1:], node[t + 1:] = xy[t], node[t]
+                if progress is not None:
+                    progress(steps)
+                break
             if progress is not None and ((t + 1) % every == 0 or t + 1 == steps):
                 progress(t + 1)
         if not plans:
