@@ -230,6 +230,7 @@ print('identical', int(out[1][0].sum()), out[1][2].shape)
 '''
 
 
+@pytest.mark.slow  # 1.5-2 minutes on the 2-core CPU (a second JAX process with two host devices)
 def test_sharding_over_two_devices_gives_bit_identical_results(two_device_python):
     assert 'identical' in two_device_python(SHARD_SCRIPT, __file__)
 
