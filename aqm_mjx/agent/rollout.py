@@ -15,8 +15,8 @@ from __future__ import annotations
 from typing import Any, Callable, NamedTuple, Optional
 
 import jax
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 
 from aqm_mjx.agent.rules import MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, redirect, replan
 from aqm_mjx.interface import Agent
@@ -64,7 +64,7 @@ def freeze(live: jax.Array, old, new):
 
 class Decide(NamedTuple):
     """The agent's side of a control step, apart from the physics, so that a host-stepped backend
-    (:mod:`aqm_mjx.envs.host`) runs the same decisions as the MJX program. Both functions are pure
+    (:func:`make_host_rollout` over :mod:`aqm_mjx.envs.ogbench_env`) runs the same decisions as the MJX program. Both functions are pure
     and batched over a leading ``[B]``; jit them at the outside.
 
     ``init(aux, graph, obs [B, O], goal [B, O], inputs) -> agents``;
@@ -136,25 +136,26 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
         legs: d, steps, longest stall; -1 padded), ``n_legs [B]``, ``xy [T, B, 2]``, ``node [T, B]``
         and ``goal_xy [B, 2]``.
     """
-    if agent.dist is None:
-        return _flat_rollout(env, agent, steps, record_actions, progress, every)
     decide = make_decide(agent, cfg)
+    plans = agent.dist is not None
 
     def run(aux: Any, graph: Graph, inputs: EpisodeInputs):
         states = jax.vmap(env.reset)(inputs.keys[:, 0], inputs.task_ids, inputs.grids)
         agents = decide.init(aux, graph, states.obs, states.goal, inputs)
+        no_node = jnp.full(inputs.task_ids.shape, -1, jnp.int32)
 
         def body(carry, t):
             states, agents = carry
             actions, agents = decide.act(aux, graph, agents, states.obs, states.goal, states.done, t, inputs)
             states = jax.vmap(env.step)(states, actions)  # STEP
-            trace = (states.data.qpos[:, :2], agents.node) + ((actions,) if record_actions else ())
+            trace = (states.data.qpos[:, :2], agents.node if plans else no_node) + (
+                (actions,) if record_actions else ())
             tick(progress, t, steps, every)
             return (states, agents), trace
 
         (states, agents), trace = jax.lax.scan(body, (states, agents), jnp.arange(steps))
-        out = dict(success=states.success, pruned=agents.pruned, cuts=agents.cuts, legs=agents.legs,
-                   n_legs=agents.n_legs, xy=trace[0], node=trace[1], goal_xy=states.goal_xy)
+        out = dict(success=states.success, xy=trace[0], node=trace[1], goal_xy=states.goal_xy,
+                   **plan_outputs(agents, inputs.task_ids.shape[0], jnp))
         if record_actions:
             out['actions'] = trace[2]
         return out
@@ -162,34 +163,14 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
     return run
 
 
-def _flat_rollout(env, agent: Agent, steps: int, record_actions: bool, progress, every: int):
-    """The program of an agent without a quasimetric (``agent.dist is None``): its controller aimed
-    at the goal at every step, the graph ignored; outputs as :func:`make_rollout`'s (nothing pruned,
-    ``node`` -1)."""
-
-    act = make_decide(agent, AgentConfig()).act
-
-    def run(aux: Any, graph, inputs: EpisodeInputs):
-        del graph
-        states = jax.vmap(env.reset)(inputs.keys[:, 0], inputs.task_ids, inputs.grids)
-        b = inputs.task_ids.shape[0]
-
-        def body(states, t):
-            actions, _ = act(aux, None, (), states.obs, states.goal, states.done, t, inputs)
-            states = jax.vmap(env.step)(states, actions)
-            trace = (states.data.qpos[:, :2], jnp.full((b,), -1, jnp.int32)) + ((actions,) if record_actions else ())
-            tick(progress, t, steps, every)
-            return states, trace
-
-        states, trace = jax.lax.scan(body, states, jnp.arange(steps))
-        out = dict(success=states.success, pruned=jnp.zeros((b,), jnp.int32),
-                   cuts=jnp.full((b, MAX_CUTS, 2), -1, jnp.int32), legs=jnp.full((b, MAX_LEGS, 3), -1.0, jnp.float32),
-                   n_legs=jnp.zeros((b,), jnp.int32), xy=trace[0], node=trace[1], goal_xy=states.goal_xy)
-        if record_actions:
-            out['actions'] = trace[2]
-        return out
-
-    return run
+def plan_outputs(agents, b: int, xp=np) -> dict:
+    """The agent-state outputs of a rollout: ``pruned [B]``, ``cuts [B, MAX_CUTS, 2]``, ``legs
+    [B, MAX_LEGS, 3]``, ``n_legs [B]`` from ``agents``, or nothing pruned, cut or logged for an agent
+    without a quasimetric (``agents == ()``). ``xp``: ``jnp`` inside a program, ``np`` on the host."""
+    if isinstance(agents, tuple):
+        return dict(pruned=xp.zeros((b,), xp.int32), cuts=xp.full((b, MAX_CUTS, 2), -1, xp.int32),
+                    legs=xp.full((b, MAX_LEGS, 3), -1.0, xp.float32), n_legs=xp.zeros((b,), xp.int32))
+    return {k: xp.asarray(getattr(agents, k)) for k in ('pruned', 'cuts', 'legs', 'n_legs')}
 
 
 def make_host_rollout(envs, agent: Agent, cfg: AgentConfig, steps: int, progress: Optional[Callable] = None,
@@ -229,15 +210,7 @@ def make_host_rollout(envs, agent: Agent, cfg: AgentConfig, steps: int, progress
                 break
             if progress is not None and ((t + 1) % every == 0 or t + 1 == steps):
                 progress(t + 1)
-        if not plans:
-            pruned = np.zeros(b, np.int32)
-            cuts, legs = np.full((b, MAX_CUTS, 2), -1, np.int32), np.full((b, MAX_LEGS, 3), -1.0, np.float32)
-            n_legs = np.zeros(b, np.int32)
-        else:
-            pruned, cuts, legs, n_legs = (np.asarray(x) for x in (agents.pruned, agents.cuts, agents.legs,
-                                                                 agents.n_legs))
-        return dict(success=success.astype(np.float32), pruned=pruned, cuts=cuts, legs=legs, n_legs=n_legs, xy=xy,
-                    node=node, goal_xy=goal_xy)
+        return dict(success=success.astype(np.float32), xy=xy, node=node, goal_xy=goal_xy, **plan_outputs(agents, b))
 
     def warm(aux: Any, graph, inputs: EpisodeInputs) -> None:
         """Compile the agent's calls for this batch shape (no physics): benchmarks time it apart."""
