@@ -121,12 +121,15 @@ def main():
     p.add_argument('--serial-steps', type=int, default=3000, help="control steps of OGBench's serial loop")
     p.add_argument('--backends', nargs='+', default=['mjx', 'ogbench'], choices=proto.BACKENDS)
     p.add_argument('--seed', type=int, default=0, help='map and episode keys: stage_keys(PRNGKey(seed))')
+    p.add_argument('--set', action='append', default=[],
+                   help='agent/protocol override after the defaults, e.g. agent.kappa=3.57 or protocol.ablations=')
     p.add_argument('--no-progress', dest='progress', action='store_false')
     p.add_argument('--out', help='JSON file for the rows')
     a = p.parse_args()
     overrides = [f'protocol.episodes={a.episodes}', 'protocol.ablations=no-pruning,flat']
     if a.tasks:
         overrides.append(f'protocol.tasks={a.tasks}')
+    overrides += a.set
     env, variants, cfg, path = prepare_evaluation(a.checkpoint, None, a.dataset, 'base', overrides)
     trained = fit.load(a.checkpoint)
     obs = read_data(path, env)['observations']
@@ -135,7 +138,7 @@ def main():
     eps = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans,
                               patience=cfg.agent.patience)
     n = len(eps.table.task)
-    print(f'{a.checkpoint}: {m["keypoints"]} keypoints; {len(eps.agents)} rows x {len(eps.task_ids)} tasks x '
+    print(f'{a.checkpoint}: kappa {cfg.agent.kappa}, patience {cfg.agent.patience}; {m["keypoints"]} keypoints; {len(eps.agents)} rows x {len(eps.task_ids)} tasks x '
           f'{a.episodes} episodes = {n} episodes of {eps.steps} steps per backend', flush=True)
     rows, results = [], {}
     serial = ogbench_loop_rate(trained, a.serial_steps)

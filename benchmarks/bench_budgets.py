@@ -12,8 +12,8 @@ For every checkpoint (a seed), with one map (``stage_keys(PRNGKey(--seed))``, as
    cut a fraction ``--false-alarm`` of them.
 2. **Evaluation** on the same episodes for every row: the paper's fixed rule at the preset's kappa
    (``aqm``), the fixed rule at the calibrated kappa, the stall rule at the calibrated patience, no
-   pruning and the flat policy; layouts: the training layout and the closed-corridor layouts of the
-   shift suite (``--shift all`` adds the opened walls).
+   pruning and the flat policy (unless ``--no-flat``); layouts: the training layout and the
+   closed-corridor layouts of the shift suite (``--shift all`` adds the opened walls).
 
 Prints per row and layout: success pooled over seeds with its 95% Wilson interval, the per-seed
 means, and the legs cut per episode; writes ``rows.json``.
@@ -61,7 +61,7 @@ def one_seed(ckpt, a, log=print) -> dict:
         f'-> kappa {kappa_c}, patience {patience_c:.0f} at {a.false_alarm:.0%} false alarms '
         f'({time.perf_counter() - t0:.0f} s)')
     # 2. evaluation: every rule on the same episodes
-    ablations = (f'kappa={kappa_c}', f'stall={patience_c:g}', 'no-pruning', 'flat')
+    ablations = (f'kappa={kappa_c}', f'stall={patience_c:g}', 'no-pruning') + (('flat',) if a.flat else ())
     proto = dataclasses.replace(cfg.protocol, episodes=a.episodes, ablations=ablations)
     res = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, patience=0.0), proto, variants,
                             key=k_eval, progress=a.progress)
@@ -88,6 +88,8 @@ def main():
     p.add_argument('--shift', choices=('closed', 'all'), default='closed')
     p.add_argument('--seed', type=int, default=0, help='map and episode keys: stage_keys(PRNGKey(seed))')
     p.add_argument('--set', action='append', default=[], help='map/agent/protocol override, e.g. protocol.tasks=1,2')
+    p.add_argument('--no-flat', dest='flat', action='store_false',
+                   help='leave out the flat row (its episodes mostly run to the step limit: the costliest row)')
     p.add_argument('--no-progress', dest='progress', action='store_false')
     p.add_argument('--out', help='folder for rows.json')
     a = p.parse_args()

@@ -90,15 +90,20 @@ def test_seeds_vmap_in_one_compile_and_match_separate_calls(one_program):
     assert not np.allclose(jax.tree.leaves(many['params'])[0][0], jax.tree.leaves(many['params'])[0][1])
 
 
-def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys, monkeypatch):
+RUN_ARGV = ['run', '--env', 'pointmaze-medium', '--preset', 'ci', '--set', 'steps=100', '--set',
+            'train.checkpoint_every=50', '--episodes', '1', '--horizon', '40']
+
+
+def interrupted_then_resumed_run(tmp_path, capsys, monkeypatch):
+    """`aqm-mjx run` stopped by Ctrl-C right after its first checkpoint, then the same command again.
+    Returns (argv, out folder, the second call's stdout)."""
     from aqm_mjx import cli  # pylint: disable=import-outside-toplevel
     from aqm_mjx.learn import checkpoint as ckpt  # pylint: disable=import-outside-toplevel
 
     path = tmp_path / 'pointmaze-medium-navigate.npz'
     np.savez(path, **synthetic.point_walks())
     out = tmp_path / 'run'
-    argv = ['run', '--env', 'pointmaze-medium', '--dataset', str(path), '--preset', 'ci', '--set', 'steps=100',
-            '--set', 'train.checkpoint_every=50', '--episodes', '1', '--horizon', '40', '--out', str(out)]
+    argv = RUN_ARGV + ['--dataset', str(path), '--out', str(out)]
     # Ctrl-C right after the first checkpoint (step 50): exit 130, a message, nothing evaluated yet
     save = ckpt.Checkpointer.save
 
@@ -112,22 +117,34 @@ def test_run_command_resumes_and_runs_as_one_program(tmp_path, capsys, monkeypat
     monkeypatch.setattr(ckpt.Checkpointer, 'save', save)
     # the same command again resumes at step 50 and finishes
     assert cli.main(argv) == 0
-    first = capsys.readouterr().out
+    return argv, out, capsys.readouterr().out
+
+
+def test_run_command_resumes_after_an_interrupt(tmp_path, capsys, monkeypatch):
+    _, out, first = interrupted_then_resumed_run(tmp_path, capsys, monkeypatch)
     assert 'resuming aqm ci preset' in first and 'mean success' in first
     steps = [json.loads(line)['step'] for line in (out / 'train' / 'metrics.jsonl').read_text().splitlines()]
     assert steps == [50, 100]  # one line per log_every, none repeated: it went on from 50
     summary = json.loads((out / 'summary.json').read_text())
     assert set(summary['success']) == {'aqm', 'no-pruning', 'flat'} and summary['keypoints'] >= 1
     assert (out / 'eval' / 'trajectories.png').exists()
+    # the run's config is saved beside it and reads back equal
+    saved = pipeline.RunConfig.from_dict(json.loads((out / 'run.json').read_text()))
+    assert saved.train.steps == 100 and saved.protocol.horizon == 40 and saved.map.delta == 0.5
+
+
+@pytest.mark.slow  # two more evaluations and a whole-run compile (2-3 minutes); the one program itself is
+# checked in CI by test_one_program_equals_the_step_by_step_path and the seed vmap test above
+def test_run_command_reruns_without_training_and_runs_as_one_program(tmp_path, capsys, monkeypatch):
+    from aqm_mjx import cli  # pylint: disable=import-outside-toplevel
+
+    argv, out, _ = interrupted_then_resumed_run(tmp_path, capsys, monkeypatch)
     # re-running finds the finished training and does not train again
     assert cli.main(argv) == 0
     assert 'is complete at step 100' in capsys.readouterr().out
     assert cli.main(argv + ['--one-program', '--seeds', '2']) == 0
     res = json.loads((out / 'one_program.json').read_text())
     assert len(res['success']) == 2 and len(res['keypoints']) == 2
-    # the run's config is saved beside it and reads back equal
-    saved = pipeline.RunConfig.from_dict(json.loads((out / 'run.json').read_text()))
-    assert saved.train.steps == 100 and saved.protocol.horizon == 40 and saved.map.delta == 0.5
 
 
 SHARD_SEEDS = r'''
