@@ -42,25 +42,38 @@ class ChunkBar:
 
     def __init__(self, bar):
         self.bar = bar
-        self.count, self.steps, self.shown = 0, 1, 0.0
+        self.count, self.steps, self.shown, self.base = 0, 1, 0.0, 0.0
         self.calls = 0  # host callbacks received (the overhead benchmark and the tests read it)
 
     def start(self, count: int, steps: int) -> None:
         """A chunk of ``count`` items (episodes) of ``steps`` control steps each begins."""
         self.count, self.steps, self.shown = int(count), max(int(steps), 1), 0.0
+        # chunks end on whole items: the bar's position is an integer up to float error
+        self.base = float(round(getattr(self.bar, 'n', 0.0) or 0.0))
+
+    def _advance(self, to: float) -> None:
+        """Move the bar to ``to`` items into the current chunk. With a tqdm bar the step is taken from
+        the bar's own position, so float error does not add up over chunks, and never past its total
+        (tqdm warns 'clamping frac to range [0, 1]' when it is)."""
+        if self.bar is not None:
+            n = getattr(self.bar, 'n', None)
+            inc = to - self.shown if n is None else (self.base + to) - n
+            total = getattr(self.bar, 'total', None)
+            if n is not None and total is not None:
+                inc = min(inc, total - n)
+            if inc > 0:
+                self.bar.update(inc)
+        self.shown = to
 
     def __call__(self, done) -> None:
         self.calls += 1
         target = self.count * min(int(done), self.steps) / self.steps
-        if target > self.shown and self.bar is not None:
-            self.bar.update(target - self.shown)
-            self.shown = target
+        if target > self.shown:
+            self._advance(target)
 
     def finish(self) -> None:
         """The chunk ended: the bar stands exactly ``count`` items further than at :meth:`start`."""
-        if self.bar is not None and self.count > self.shown:
-            self.bar.update(self.count - self.shown)
-        self.shown = float(self.count)
+        self._advance(float(self.count))
 
 
 class Hook:

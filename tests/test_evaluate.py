@@ -122,6 +122,29 @@ def test_the_bar_moves_inside_a_1000_step_chunk():
     assert during[-1][0] - during[0][0] > 0.5 * (t1 - t0), (during[0][0] - t0, during[-1][0] - t0, t1 - t0)
 
 
+def test_the_bar_ends_exactly_at_its_total_after_many_chunks():
+    """Ten chunks of 160 episodes, ticks every 20 of 1,000 steps: fractional steps that used to add up
+    to 1600.0000000000143 and make tqdm warn 'clamping frac to range [0, 1]'. The bar must end on
+    exactly 1,600, never pass it, and stand on a whole episode count after every chunk."""
+    import io  # pylint: disable=import-outside-toplevel
+    import warnings  # pylint: disable=import-outside-toplevel
+    from tqdm import tqdm  # pylint: disable=import-outside-toplevel
+
+    bar = tqdm(total=1600, file=io.StringIO(), mininterval=0)
+    ticks = ChunkBar(bar)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')  # the TqdmWarning would fail the test
+        for chunk in range(10):
+            ticks.start(160, 1000)
+            for done in range(20, 1001, 20):
+                ticks(done)
+                assert bar.n <= 1600
+            ticks.finish()
+            assert bar.n == 160 * (chunk + 1)
+        bar.close()
+    assert ticks.calls == 500
+
+
 def test_calibration_by_hand():
     """Legs (d, steps, longest stall): the fixed rule's kappa is the (1 - q) quantile of steps / d
     minus 1, the stall rule's patience the (1 - q) quantile of the longest stall; padding, zero-length
