@@ -140,6 +140,9 @@ def main():
     n = len(eps.table.task)
     print(f'{a.checkpoint}: kappa {cfg.agent.kappa}, patience {cfg.agent.patience}; {m["keypoints"]} keypoints; {len(eps.agents)} rows x {len(eps.task_ids)} tasks x '
           f'{a.episodes} episodes = {n} episodes of {eps.steps} steps per backend', flush=True)
+    if 'mjx' in a.backends and -(-n // a.envs) < 2:  # checked before any episode runs, not after MJX's
+        p.error(f'the mjx timing needs at least two chunks: {n} episodes at --envs {a.envs} make one; '
+                f'use --envs {max(1, -(-n // 2))} or less')
     rows, results = [], {}
     serial = ogbench_loop_rate(trained, a.serial_steps)
     print(serial, flush=True)
