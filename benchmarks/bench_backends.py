@@ -87,9 +87,10 @@ def run_backend(backend, workers, env, trained, graph, cfg, eps, k_eval, envs_pe
     program = ev.make_program(env, trained.agent, cfg.agent, eps.steps, mesh, backend, workers)
     compile_s = 0.0
     if backend != 'mjx':
-        chunk = min(envs_per_chunk, len(eps.table.task))
+        n = len(eps.table.task)
+        chunk, _ = ev.chunking(n, envs_per_chunk, mesh.devices.size)  # the shape evaluate will call with
         shard, rep = NamedSharding(mesh, PartitionSpec('env')), NamedSharding(mesh, PartitionSpec())
-        inputs = jax.tree.map(lambda x: ev.put_global(x, shard), proto.table_inputs(eps, k_eval, np.arange(chunk)))
+        inputs = jax.tree.map(lambda x: ev.put_global(x, shard), proto.table_inputs(eps, k_eval, np.arange(chunk) % n))
         t0 = time.perf_counter()
         program.run.warm(*jax.device_put((trained.agent.aux, graph), rep), inputs)
         compile_s = time.perf_counter() - t0
@@ -140,9 +141,12 @@ def main():
     n = len(eps.table.task)
     print(f'{a.checkpoint}: kappa {cfg.agent.kappa}, patience {cfg.agent.patience}; {m["keypoints"]} keypoints; {len(eps.agents)} rows x {len(eps.task_ids)} tasks x '
           f'{a.episodes} episodes = {n} episodes of {eps.steps} steps per backend', flush=True)
-    if 'mjx' in a.backends and -(-n // a.envs) < 2:  # checked before any episode runs, not after MJX's
-        p.error(f'the mjx timing needs at least two chunks: {n} episodes at --envs {a.envs} make one; '
-                f'use --envs {max(1, -(-n // 2))} or less')
+    n_dev = ev.device_mesh().devices.size
+    chunk, n_chunks = ev.chunking(n, a.envs, n_dev)
+    if 'mjx' in a.backends and n_chunks < 2:  # checked before any episode runs, not after MJX's
+        most = (n - 1) // n_dev * n_dev  # the largest --envs whose chunk is smaller than n
+        p.error(f'the mjx timing needs at least two chunks: {n} episodes in chunks of {chunk} make one; '
+                + (f'use --envs {most} or less' if most else f'more episodes than {n_dev} devices x 1 are needed'))
     rows, results = [], {}
     serial = ogbench_loop_rate(trained, a.serial_steps)
     print(serial, flush=True)

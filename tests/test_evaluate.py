@@ -1,14 +1,17 @@
 """The evaluation protocol: shift suites, the episode table, chunk- and device-invariance, the CLI."""
 
 import dataclasses
+import io
 import json
 import time
 import types
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tqdm import tqdm
 
 from aqm_mjx import cli, envs, pipeline
 from aqm_mjx.agent import oracle
@@ -126,10 +129,6 @@ def test_the_bar_ends_exactly_at_its_total_after_many_chunks():
     """Ten chunks of 160 episodes, ticks every 20 of 1,000 steps: fractional steps that used to add up
     to 1600.0000000000143 and make tqdm warn 'clamping frac to range [0, 1]'. The bar must end on
     exactly 1,600, never pass it, and stand on a whole episode count after every chunk."""
-    import io  # pylint: disable=import-outside-toplevel
-    import warnings  # pylint: disable=import-outside-toplevel
-    from tqdm import tqdm  # pylint: disable=import-outside-toplevel
-
     bar = tqdm(total=1600, file=io.StringIO(), mininterval=0)
     ticks = ChunkBar(bar)
     with warnings.catch_warnings():
@@ -143,6 +142,16 @@ def test_the_bar_ends_exactly_at_its_total_after_many_chunks():
             assert bar.n == 160 * (chunk + 1)
         bar.close()
     assert ticks.calls == 500
+
+
+def test_chunking_by_hand():
+    """250 episodes at 125 environments: 2 chunks of 125; at 250: one; 8 episodes at 4 on 8 devices:
+    the chunk rounds up to 8, one chunk; 10 at 3 on 2 devices: chunks of 4, three of them."""
+    assert evaluate.chunking(250, 125) == (125, 2)
+    assert evaluate.chunking(250, 250) == (250, 1)
+    assert evaluate.chunking(250, 1000) == (250, 1)
+    assert evaluate.chunking(8, 4, 8) == (8, 1)
+    assert evaluate.chunking(10, 3, 2) == (4, 3)
 
 
 def test_calibration_by_hand():

@@ -86,6 +86,14 @@ class HostProgram:
         self.envs.close()
 
 
+def chunking(n: int, envs: int, n_dev: int = 1) -> tuple:
+    """How :func:`evaluate` cuts ``n`` episodes at ``envs`` environments per chunk over ``n_dev``
+    devices: (environments per chunk, number of chunks). A chunk holds at most ``n`` and ``envs``
+    environments, rounded up to a multiple of the device count."""
+    chunk = -(-min(int(envs), int(n)) // n_dev) * n_dev
+    return chunk, -(-int(n) // chunk)
+
+
 def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional[Mesh] = None,
                  backend: str = 'mjx', workers: int = 0):
     """The evaluation of one chunk: ``(aux, graph, inputs) -> dict`` of
@@ -129,8 +137,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     table = eps.table
     mesh = device_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
-    chunk = min(int(protocol.envs), len(table.task))
-    chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count
+    chunk, n_chunks = chunking(len(table.task), int(protocol.envs), n_dev)
     owned = program is None
     if owned:
         program = make_program(env, agent, cfg, eps.steps, mesh, protocol.backend, protocol.workers)
@@ -138,7 +145,6 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec('env'))
     aux, graph = jax.device_put((agent.aux, graph), rep)
     n = len(table.task)
-    n_chunks = -(-n // chunk)
     success, pruned = np.zeros(n, bool), np.zeros(n, np.int32)
     legs, n_legs = np.full((n, MAX_LEGS, 3), -1.0, np.float32), np.zeros(n, np.int32)
     first = {}  # (agent, layout, task) -> row of its first episode, whose trajectory is kept
