@@ -40,6 +40,14 @@ from aqm_mjx.run import prepare_evaluation, read_data
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
 
+def cell(success, pruned) -> dict:
+    """One row x layout of one seed: its episodes' outcomes and legs cut, kept per episode so that
+    seeds pool by concatenation."""
+    success, pruned = np.asarray(success, bool), np.asarray(pruned, int)
+    return dict(success=int(success.sum()), n=int(success.size), pruned=float(pruned.mean()),
+                episodes_success=success.tolist(), episodes_pruned=pruned.tolist())
+
+
 def one_seed(ckpt, a, log=print) -> dict:
     env, _, cfg, path = prepare_evaluation(ckpt, None, a.dataset, 'base', a.set)
     trained = fit.load(ckpt, log=log)
@@ -47,34 +55,42 @@ def one_seed(ckpt, a, log=print) -> dict:
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(a.seed))
     graph, m = trimmed_map(trained.agent, obs, cfg.map, k_map)
     suite = shifts.suite(env.maze)
-    variants = {k: g for k, g in suite.items() if k == 'base' or k.startswith('close') or a.shift == 'all'}
+    variants = {k: g for k, g in suite.items()
+                if k == 'base' or (a.shift == 'closed' and k.startswith('close')) or a.shift == 'all'}
     # 1. calibration: no pruning, training layout, other episodes
     t0 = time.perf_counter()
     cal_proto = dataclasses.replace(cfg.protocol, episodes=a.calibration_episodes, ablations=())
     cal = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, kappa=float('inf'), patience=0.0),
                             cal_proto, {'base': suite['base']}, key=jax.random.fold_in(k_eval, 1), progress=a.progress)
     legs = calibration.legs_of(cal, 'aqm', 'base')
-    c = {k: np.asarray(v).tolist() for k, v in calibration.calibrate(legs, a.false_alarm).items()}
-    kappa_c, patience_c = round(float(c['kappa']), 2), float(round(c['patience']))
+    cals = [{k: np.asarray(v).tolist() for k, v in calibration.calibrate(legs, q).items()} for q in a.false_alarm]
+    settings = [(round(float(c['kappa']), 2), float(round(c['patience']))) for c in cals]
+    c = cals[0]
     log(f'{ckpt}: {m["keypoints"]} keypoints; calibration pass {cal_proto.episodes} ep/task, {c["legs"]} legs, '
-        f'steps/d q50 {c["ratio_q"][0]:.2f} q95 {c["ratio_q"][2]:.2f}, longest stall q95 {c["stall_q"][2]:.0f} '
-        f'-> kappa {kappa_c}, patience {patience_c:.0f} at {a.false_alarm:.0%} false alarms '
-        f'({time.perf_counter() - t0:.0f} s)')
+        f'steps/d q50 {c["ratio_q"][0]:.2f} q95 {c["ratio_q"][2]:.2f}, longest stall q95 {c["stall_q"][2]:.0f} -> '
+        + ', '.join(f'kappa {k}, patience {p:.0f} at {q:.1%} false alarms' for q, (k, p) in zip(a.false_alarm, settings))
+        + f' ({time.perf_counter() - t0:.0f} s)')
     # 2. evaluation: every rule on the same episodes
-    ablations = (f'kappa={kappa_c}', f'stall={patience_c:g}', 'no-pruning') + (('flat',) if a.flat else ())
-    proto = dataclasses.replace(cfg.protocol, episodes=a.episodes, ablations=ablations)
+    several = len(a.false_alarm) > 1
+    ablations, names = [], {'aqm': f'fixed, preset kappa {cfg.agent.kappa:g}'}
+    for q, (kappa_c, patience_c) in zip(a.false_alarm, settings):
+        # rows are named by rule (and rate), not by the calibrated value, which differs from seed to seed
+        at = f' at {q:.1%}' if several else ''
+        ablations += [f'kappa={kappa_c}', f'stall={patience_c:g}']
+        names[ablations[-2]], names[ablations[-1]] = f'fixed, calibrated kappa{at}', f'stall, calibrated patience{at}'
+    ablations += ['no-pruning'] + (['flat'] if a.flat else [])
+    names.update({'no-pruning': 'no pruning', 'flat': 'flat'})
+    proto = dataclasses.replace(cfg.protocol, episodes=a.episodes, ablations=tuple(dict.fromkeys(ablations)))
     res = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, patience=0.0), proto, variants,
                             key=k_eval, progress=a.progress)
-    # rows are named by rule, not by the calibrated value, which differs from seed to seed
-    names = {'aqm': f'fixed, preset kappa {cfg.agent.kappa:g}', ablations[0]: 'fixed, calibrated kappa',
-             ablations[1]: 'stall, calibrated patience', 'no-pruning': 'no pruning', 'flat': 'flat'}
     rows = {}
     for i, ag in enumerate(res.agents):
         for j, v in enumerate(res.variants):
             sel = (res.table.agent == i) & (res.table.variant == j)
-            rows[(names[ag], v)] = dict(success=int(res.success[sel].sum()), n=int(sel.sum()),
-                                        pruned=float(res.pruned[sel].mean()))
+            rows[(names[ag], v)] = cell(res.success[sel], res.pruned[sel])
+    kappa_c, patience_c = settings[0]
     return dict(checkpoint=ckpt, keypoints=m['keypoints'], calibration=c, kappa=kappa_c, patience=patience_c,
+                calibrations=[dict(false_alarm=q, kappa=k, patience=p) for q, (k, p) in zip(a.false_alarm, settings)],
                 rows=rows, variants=res.variants, timing=res.timing)
 
 
@@ -84,8 +100,10 @@ def main():
     p.add_argument('--dataset', help="default: the dataset recorded in each run's config.json")
     p.add_argument('--episodes', type=int, default=20, help='evaluation episodes per task, row and layout')
     p.add_argument('--calibration-episodes', type=int, default=4, help='calibration episodes per task')
-    p.add_argument('--false-alarm', type=float, default=0.02, help='fraction of traversable legs cut')
-    p.add_argument('--shift', choices=('closed', 'all'), default='closed')
+    p.add_argument('--false-alarm', type=float, nargs='+', default=[0.02],
+                   help='fraction of traversable legs cut; several rates add a calibrated pair of rows each')
+    p.add_argument('--shift', choices=('base', 'closed', 'all'), default='closed',
+                   help="layouts: the training layout alone, with the closed corridors (default), or the whole suite")
     p.add_argument('--seed', type=int, default=0, help='map and episode keys: stage_keys(PRNGKey(seed))')
     p.add_argument('--set', action='append', default=[], help='map/agent/protocol override, e.g. protocol.tasks=1,2')
     p.add_argument('--no-flat', dest='flat', action='store_false',
@@ -113,16 +131,20 @@ def main():
             k, n = sum(c['success'] for c in cells), sum(c['n'] for c in cells)
             lo, hi = stats.wilson(k, n)
             per = ', '.join(f'{100 * c["success"] / c["n"]:.0f}' for c in cells)
-            cut = np.mean([c['pruned'] for c in cells])
+            cut = stats.cuts_by_outcome(sum((c['episodes_success'] for c in cells), []),
+                                        sum((c['episodes_pruned'] for c in cells), []))
             print(f'{name:<36} {v:<10} {100 * k / n:5.1f}% [{100 * lo:4.1f}-{100 * hi:5.1f}]  seeds {per:<10} '
-                  f'cut/ep {cut:5.2f}')
-            out_rows.append(dict(rule=name, layout=v, success=k, n=n, wilson=[lo, hi], per_seed=per, cut_per_episode=cut))
+                  f'cut/ep {cut["all"]:5.2f} (succeeded {cut["succeeded"]:5.2f}, failed {cut["failed"]:5.2f})')
+            out_rows.append(dict(rule=name, layout=v, success=k, n=n, wilson=[lo, hi], per_seed=per,
+                                 cut_per_episode=cut['all'], cut_per_succeeded=cut['succeeded'],
+                                 cut_per_failed=cut['failed']))
     for s in seeds:
-        print(f"{s['checkpoint']}: calibrated kappa {s['kappa']}, patience {s['patience']:g} "
+        print(f"{s['checkpoint']}: calibrated " + ', '.join(f"kappa {c['kappa']}, patience {c['patience']:g} at "
+                                                             f"{c['false_alarm']:.1%}" for c in s['calibrations']) + " "
               f"({s['calibration']['legs']} legs); evaluation {s['timing']['total_s']:.0f} s")
     if a.out:
         os.makedirs(a.out, exist_ok=True)
-        meta = [dict(checkpoint=s['checkpoint'], kappa=s['kappa'], patience=s['patience'],
+        meta = [dict(checkpoint=s['checkpoint'], kappa=s['kappa'], patience=s['patience'], calibrations=s['calibrations'],
                      calibration=s['calibration'], keypoints=s['keypoints']) for s in seeds]
         finish([dict(seeds=meta, rows=out_rows, episodes=a.episodes, false_alarm=a.false_alarm)],
                os.path.join(a.out, 'rows.json'))

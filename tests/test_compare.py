@@ -41,6 +41,16 @@ def test_t_quantiles_match_scipy_and_intervals_are_recomputable():
         stats.wilson(11, 10)
 
 
+def test_cuts_split_by_outcome_by_hand():
+    # 5 episodes: successes cut 0, 1 and 2 legs (mean 1), failures 4 and 6 (mean 5); all: 13 / 5
+    c = stats.cuts_by_outcome([True, False, True, True, False], [0, 4, 1, 2, 6])
+    assert c == dict(all=pytest.approx(2.6), succeeded=pytest.approx(1.0), failed=pytest.approx(5.0), n=5, n_succeeded=3)
+    every = stats.cuts_by_outcome([True, True], [1, 2])
+    assert every['succeeded'] == 1.5 and math.isnan(every['failed'])
+    with pytest.raises(ValueError, match='one entry per episode'):
+        stats.cuts_by_outcome([True, False], [1, 2, 3])
+
+
 def test_aggregate_rows_from_per_seed_tables():
     def table(m, rates, agents=('flat',)):
         return dict(episodes=10, tasks=[1, 2], variants=['base'],

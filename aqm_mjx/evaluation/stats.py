@@ -3,12 +3,15 @@ episodes (Wilson's score interval on the pooled successes). Plain NumPy; no SciP
 
     lo, hi = seed_interval([0.8, 0.9])           # t with 1 degree of freedom: wide, as it should be
     lo, hi = wilson(successes=90, n=100)
+    cuts_by_outcome(success, pruned)             # legs cut per episode, apart for successes and failures
 """
 
 from __future__ import annotations
 
 import math
 from typing import Sequence
+
+import numpy as np
 
 # Student's t, two-sided 95% (the 0.975 quantile) for 1..30 degrees of freedom; beyond, the Cornish-Fisher
 # expansion around the normal quantile. tests/test_compare.py checks both against scipy.stats.t.ppf.
@@ -51,3 +54,24 @@ def wilson(successes: float, n: int, z: float = Z975) -> tuple[float, float]:
     centre = (p + z * z / (2 * n)) / den
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def cuts_by_outcome(success, pruned) -> dict:
+    """Legs cut per episode, over all episodes and apart for those that succeeded and those that failed.
+
+    Args:
+        success: ``bool [E]`` per episode.
+        pruned: ``int [E]`` legs cut in the episode.
+    Returns:
+        ``{'all', 'succeeded', 'failed'}``: mean cuts per episode of each group (NaN for an empty group),
+        with ``'n'`` and ``'n_succeeded'``.
+    """
+    success, pruned = np.asarray(success, bool).ravel(), np.asarray(pruned, float).ravel()
+    if success.shape != pruned.shape:
+        raise ValueError(f'success {success.shape} and pruned {pruned.shape} must have one entry per episode')
+
+    def mean(x):
+        return float(x.mean()) if x.size else float('nan')
+
+    return dict(all=mean(pruned), succeeded=mean(pruned[success]), failed=mean(pruned[~success]),
+                n=int(success.size), n_succeeded=int(success.sum()))
