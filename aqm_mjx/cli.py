@@ -134,12 +134,12 @@ def cmd_collect(a):
     from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
 
     cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
-                                batch=a.batch, seed=a.seed).resolved()
+                                batch=a.batch, seed=a.seed, layout=a.layout).resolved()
     collect.check_output(a.out, a.overwrite, cfg)  # name, folder and free space before minutes of collection
     import jax  # pylint: disable=import-outside-toplevel
 
     print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
-          f'{cfg.env}, noise {cfg.noise}, {cfg.batch} at a time on {jax.devices()[0]}')
+          f'{cfg.env} ({cfg.layout} layout), noise {cfg.noise}, {cfg.batch} at a time on {jax.devices()[0]}')
     physics = {k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations)) if v is not None}
     res = collect.collect(cfg, physics=physics)
     train, val = collect.write(res, a.out, overwrite=a.overwrite)
@@ -372,6 +372,8 @@ def main(argv=None):
     c.add_argument('--batch', type=int, default=64,
                    help='episodes simulated side by side (CPU: 64 to 256; GPU: thousands)')
     c.add_argument('--seed', type=int, default=0, help='random seed (episode e uses fold_in(seed, e))')
+    c.add_argument('--layout', default='base',
+                   help="walls of the data: 'base' or a shifted layout (close-I-J, open-I-J: the names of evaluate --shift)")
     c.add_argument('--iterations', type=int, default=None,
                    help="MJX solver iterations (default MuJoCo's: 100); fewer trade fidelity for speed")
     c.add_argument('--ls-iterations', type=int, default=None, help="MJX line-search iterations (default MuJoCo's: 50)")

@@ -31,21 +31,24 @@ from aqm_mjx.pipeline import PRESETS, RunConfig, make_run, stage_keys, summary
 
 # ------------------------------------------------------------------------------------------- data
 def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, batch: int, log=print,
-               style: str = 'navigate') -> str:
-    """The dataset file of a run: ``dataset`` if given, else ``OUT/data/ENV-STYLE.npz``, collected
-    in MJX (``episodes`` + a tenth for validation) unless it is already there."""
+               style: str = 'navigate', layout: str = 'base') -> str:
+    """The dataset file of a run: ``dataset`` if given, else ``OUT/data/ENV-STYLE.npz`` (on a shifted
+    ``layout``: ``OUT/data/ENV-STYLE-LAYOUT.npz``), collected in MJX (``episodes`` + a tenth for
+    validation) unless it is already there."""
     if dataset:
         if not os.path.exists(dataset):
             raise FileNotFoundError(f'dataset {dataset!r} not found')
         return dataset
-    path = os.path.join(out, 'data', f'{env_name}-{style}.npz')
+    ccfg = collect.CollectConfig(env=env_name, style=style, episodes=episodes, batch=batch, layout=layout).resolved()
+    name = f'{env_name}-{style}' + ('' if layout == shifts.BASE else f'-{layout}')
+    path = os.path.join(out, 'data', f'{name}.npz')
     if os.path.exists(path):
         log(f'[1/4 data] found {path}, not collecting again')
         return path
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    ccfg = collect.CollectConfig(env=env_name, style=style, episodes=episodes, batch=batch).resolved()
     collect.check_output(path, cfg=ccfg)  # room for it, before minutes of collection
-    log(f'[1/4 data] collecting {ccfg.episodes} + {ccfg.val_episodes} {style} episodes x {ccfg.steps} states')
+    where = '' if layout == shifts.BASE else f' on layout {layout}'
+    log(f'[1/4 data] collecting {ccfg.episodes} + {ccfg.val_episodes} {style} episodes x {ccfg.steps} states{where}')
     res = collect.collect(ccfg)
     collect.write(res, path)
     collect.plot(res, path[:-4] + '.png')

@@ -48,22 +48,36 @@ def cell(success, pruned) -> dict:
                 episodes_success=success.tolist(), episodes_pruned=pruned.tolist())
 
 
-def one_seed(ckpt, a, log=print) -> dict:
+def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> dict:
+    """Calibrate one checkpoint on its training layout, then evaluate every rule on the same episodes.
+
+    ``a``: this script's options (episodes, calibration episodes, false-alarm rates, shift, seed,
+    overrides, flat, progress). ``layouts``: the evaluation layouts by name (default: from
+    ``a.shift``); ``train_layout``: the layout the model's data were collected on, where the
+    calibration pass runs."""
     env, _, cfg, path = prepare_evaluation(ckpt, None, a.dataset, 'base', a.set)
     trained = fit.load(ckpt, log=log)
     obs = read_data(path, env)['observations']
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(a.seed))
     graph, m = trimmed_map(trained.agent, obs, cfg.map, k_map)
-    suite = shifts.suite(env.maze)
-    variants = {k: g for k, g in suite.items()
-                if k == 'base' or (a.shift == 'closed' and k.startswith('close')) or a.shift == 'all'}
+    if layouts is None:
+        suite = shifts.suite(env.maze)
+        variants = {k: g for k, g in suite.items()
+                    if k == 'base' or (a.shift == 'closed' and k.startswith('close')) or a.shift == 'all'}
+    else:
+        variants = {k: shifts.variant(env.maze, k) for k in layouts}
     # 1. calibration: no pruning, training layout, other episodes
     t0 = time.perf_counter()
     cal_proto = dataclasses.replace(cfg.protocol, episodes=a.calibration_episodes, ablations=())
     cal = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, kappa=float('inf'), patience=0.0),
-                            cal_proto, {'base': suite['base']}, key=jax.random.fold_in(k_eval, 1), progress=a.progress)
-    legs = calibration.legs_of(cal, 'aqm', 'base')
+                            cal_proto, {train_layout: shifts.variant(env.maze, train_layout)},
+                            key=jax.random.fold_in(k_eval, 1), progress=a.progress)
+    legs = calibration.legs_of(cal, 'aqm', train_layout)
     cals = [{k: np.asarray(v).tolist() for k, v in calibration.calibrate(legs, q).items()} for q in a.false_alarm]
+    if not cals[0]['legs']:
+        raise SystemExit(f'{ckpt}: the calibration pass completed no leg on {train_layout} ({cal_proto.episodes} '
+                         'episodes per task): nothing to calibrate from; give more --calibration-episodes or a '
+                         'model that reaches its keypoints')
     settings = [(round(float(c['kappa']), 2), float(round(c['patience']))) for c in cals]
     c = cals[0]
     log(f'{ckpt}: {m["keypoints"]} keypoints; calibration pass {cal_proto.episodes} ep/task, {c["legs"]} legs, '

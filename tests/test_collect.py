@@ -127,6 +127,26 @@ def test_explore_directions_hold_for_ten_steps_and_stitch_reaches_its_goal():
     assert out['goals_reached'].mean() >= 0.9  # 4 cells = 16 m in 201 steps of <= 0.2 m
 
 
+def _cells_visited(qpos):
+    """``(i, j)`` grid cells of the positions ``qpos [..., 2+]``."""
+    xy = np.asarray(qpos)[..., :2].reshape(-1, 2)
+    ij = np.rint((xy + mazes.MAZE_OFFSET) / mazes.MAZE_UNIT).astype(int)[:, ::-1]
+    return {tuple(c) for c in ij}
+
+
+def test_collection_on_a_shifted_layout_stays_out_of_the_closed_cell():
+    base = collect.CollectConfig(env='pointmaze-medium', episodes=16, steps=150, batch=17, seed=2)
+    closed = collect.CollectConfig(env='pointmaze-medium', episodes=16, steps=150, batch=17, seed=2, layout='close-3-3')
+    assert closed.grid()[3, 3] == 1 and base.grid()[3, 3] == 0
+    a, b = (collect.collect(c, progress=False) for c in (base, closed))
+    assert (3, 3) in _cells_visited(a.train['qpos'])  # on the base layout the data go through it
+    seen = _cells_visited(b.train['qpos'])
+    assert (3, 3) not in seen and all(closed.grid()[c] == 0 for c in seen)  # walls and waypoints are the variant's
+    assert b.stats['layout'] == 'close-3-3' and b.stats['goals_reached_mean'] > 0.5
+    with pytest.raises(ValueError, match="unknown shift 'close-0-0'"):
+        collect.CollectConfig(env='pointmaze-medium', layout='close-0-0').resolved()
+
+
 def test_ant_collection_is_upright_and_moves():
     env = envs.make('antmaze-medium', max_episode_steps=60, terminate_at_goal=False)
     run = jax.jit(jax.vmap(collect.episode_fn(env, 'stitch', 60, 0.2)))
@@ -143,7 +163,8 @@ def test_cli_collect(tmp_path, capsys):
     with pytest.raises(SystemExit):
         cli.main(['collect', '--help'])
     help_text = capsys.readouterr().out
-    for opt in ('--env', '--style', '--episodes', '--steps', '--noise', '--batch', '--seed', '--out', '--overwrite'):
+    for opt in ('--env', '--style', '--episodes', '--steps', '--noise', '--batch', '--seed', '--layout', '--out',
+                '--overwrite'):
         assert opt in help_text
     out = str(tmp_path / 'pm.npz')
     assert cli.main(['collect', '--env', 'pointmaze-medium', '--style', 'explore', '--episodes', '10', '--steps', '30',

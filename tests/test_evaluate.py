@@ -181,6 +181,10 @@ def test_calibration_by_hand():
     assert float(cj['kappa']) == pytest.approx(np.quantile(sub[:, 1] / sub[:, 0], 0.95) - 1, rel=1e-5)
     with pytest.raises(ValueError, match='false_alarm'):
         calibration.calibrate(legs, 0.0)
+    # no leg at all (an agent that completed none): NaN settings and 0 legs, not an indexing error
+    for empty in (np.zeros((0, 3), np.float32), np.full((4, 3), -1.0, np.float32)):
+        e = calibration.calibrate(empty, 0.02)
+        assert int(e['legs']) == 0 and np.isnan(float(e['kappa'])) and np.isnan(float(e['patience']))
 
 
 def test_success_rates_by_hand():

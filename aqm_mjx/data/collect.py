@@ -36,7 +36,7 @@ import numpy as np
 from aqm_mjx import envs, files
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import expert
-from aqm_mjx.envs import mazes
+from aqm_mjx.envs import mazes, shifts
 from aqm_mjx.progress import BAR_FORMAT, ChunkBar, tick
 
 STYLES = ('navigate', 'stitch', 'explore')
@@ -82,6 +82,9 @@ class CollectConfig:
         noise: standard deviation of the Gaussian action noise.
         batch: episodes simulated side by side in one jitted call.
         seed: base seed; episode ``e`` uses ``fold_in(PRNGKey(seed), e)``.
+        layout: the walls the data are collected in: ``'base'`` (the maze's layout) or a variant of
+            :mod:`aqm_mjx.envs.shifts` (``close-I-J``, ``open-I-J``), for models trained on a shifted
+            layout (the training-layout half of the paper's Figure 3).
     """
 
     env: str = 'antmaze-medium'
@@ -91,6 +94,7 @@ class CollectConfig:
     noise: Optional[float] = None
     batch: int = 64
     seed: int = 0
+    layout: str = 'base'
 
     def resolved(self) -> 'CollectConfig':
         """The config with OGBench's defaults filled in and every field checked."""
@@ -107,7 +111,12 @@ class CollectConfig:
             raise ValueError(f'noise must be a finite number >= 0; got {c.noise}')
         if int(c.batch) < 1:
             raise ValueError(f'batch must be >= 1; got {c.batch}')
+        shifts.variant(maze, c.layout)  # an unknown layout names the maze's suite
         return c
+
+    def grid(self) -> np.ndarray:
+        """``int8 [H, W]``: the occupancy grid of :attr:`layout`."""
+        return shifts.variant(envs.parse_name(self.env)[1], self.layout)
 
     @property
     def val_episodes(self) -> int:
@@ -169,11 +178,13 @@ def _noisy_xy(key, ij):
     return xy + jax.random.uniform(key, (2,), minval=-noise, maxval=noise)
 
 
-def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Callable] = None
+def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Callable] = None, grid=None
                ) -> Callable[[jax.Array], dict]:
     """A pure, jittable, vmappable function ``key -> one episode`` of OGBench-style data.
 
     ``env`` must be built with ``terminate_at_goal=False`` and ``max_episode_steps >= steps``.
+    ``grid`` (``[H, W]``, default the maze's layout): the walls of every episode; starts, goals and
+    the expert's BFS waypoints are drawn in it.
     ``progress``: a host hook given the steps done every :data:`aqm_mjx.progress.EVERY` steps
     (once per call under ``vmap``: the step count is not batched).
 
@@ -189,7 +200,8 @@ def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Cal
     if env.max_episode_steps < steps:
         raise ValueError(f'the environment ends episodes after {env.max_episode_steps} steps; collection needs '
                          f'max_episode_steps >= steps ({steps})')
-    grid = env.layout
+    walls = None if grid is None else jnp.asarray(mazes.validate_grid(grid, env.maze))  # None: the maze's own
+    grid = np.asarray(env.layout if grid is None else walls)
     h, w = grid.shape
     free = jnp.asarray(free_cells(grid))
     junctions = jnp.asarray(junction_cells(grid))
@@ -208,7 +220,7 @@ def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Cal
             goal_ij = ring_cells[f, jax.random.randint(k_goal, (), 0, ring_count[f])]
         else:
             goal_ij = draw_junction(k_goal)
-        state = env.reset_to(k_reset, _noisy_xy(k_ixy, init_ij), _noisy_xy(k_gxy, goal_ij))
+        state = env.reset_to(k_reset, _noisy_xy(k_ixy, init_ij), _noisy_xy(k_gxy, goal_ij), grid=walls)
         phase = jax.random.uniform(k_phase, (), maxval=2 * jnp.pi)
 
         def body(carry, t):
@@ -280,7 +292,7 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     batch = min(int(cfg.batch), total)
     bar = _progress(total, f'collect {cfg.env} {cfg.style}', progress)
     ticks = ChunkBar(bar)
-    run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise, progress=ticks)))
+    run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise, progress=ticks, grid=None if cfg.layout == shifts.BASE else cfg.grid())))
     base = jax.random.PRNGKey(cfg.seed)
     n, t = total * cfg.steps, cfg.steps
     nq, nv = env.mj_model.nq, env.mj_model.nv
@@ -318,7 +330,7 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     val = {k: v[cut:] for k, v in buf.items()}
     run_s = wall - first_chunk_s
     steady = (total - min(batch, total)) * t
-    stats = dict(env=cfg.env, style=cfg.style, episodes=cfg.episodes, val_episodes=cfg.val_episodes,
+    stats = dict(env=cfg.env, style=cfg.style, layout=cfg.layout, episodes=cfg.episodes, val_episodes=cfg.val_episodes,
                  steps=cfg.steps, noise=cfg.noise, batch=batch, seed=cfg.seed, transitions=int(n),
                  wall_s=round(wall, 2), first_chunk_s=round(first_chunk_s, 2),
                  steady_transitions_per_s=round(steady / run_s, 1) if steady and run_s > 0 else None,
@@ -372,8 +384,9 @@ def plot(result: CollectResult, path: str, n: int = 12) -> None:
     m = min(n, result.config.episodes)
     trajs = [xy[e * t:(e + 1) * t] for e in range(m)]
     c = result.config
-    render.render_maze(mazes.layout(maze), path, trajectories=trajs, start_xy=np.stack([tr[0] for tr in trajs]),
-                       title=f'{c.env} {c.style}: {m} of {c.episodes} episodes x {t} states')
+    where = '' if c.layout == shifts.BASE else f' ({c.layout})'
+    render.render_maze(c.grid(), path, trajectories=trajs, start_xy=np.stack([tr[0] for tr in trajs]),
+                       title=f'{c.env}{where} {c.style}: {m} of {c.episodes} episodes x {t} states')
 
 
 def _progress(total, desc, enabled):

@@ -55,6 +55,8 @@ def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
     if not 0.0 < false_alarm < 1.0:
         raise ValueError(f'false_alarm must be in (0, 1); got {false_alarm}')
     legs = jnp.asarray(legs, jnp.float32)
+    if legs.size == 0:  # no leg at all (shapes are static, so this is a trace-time check): NaN, as for no valid one
+        legs, rows = jnp.full((1, 3), -1.0), None
     ok = valid(legs)
     if rows is not None:
         r = jnp.asarray(rows, bool)
