@@ -69,7 +69,7 @@ def heatmap(rows: Sequence[str], cols: Sequence[str], values: np.ndarray, path: 
     ax.set_yticks(np.arange(len(rows)), rows)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title)
+    ax.set_title(title, fontsize=9)
     fig.colorbar(im, ax=ax, label='success (%)')
     return render.finish(plt, fig, path)  # pylint: disable=protected-access
 
