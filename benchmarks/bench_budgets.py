@@ -125,6 +125,9 @@ def main():
     p.add_argument('--no-progress', dest='progress', action='store_false')
     p.add_argument('--out', help='folder for rows.json')
     a = p.parse_args()
+    bad = [q for q in a.false_alarm if not 0 < q < 1]
+    if bad:  # before any map or episode (calibrate() would refuse them only after the calibration pass)
+        p.error(f'--false-alarm rates must be in (0, 1); got {bad}')
     if a.out:
         files.check_writable(a.out, what='the benchmark')
     seeds = []

@@ -200,8 +200,11 @@ def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Cal
     if env.max_episode_steps < steps:
         raise ValueError(f'the environment ends episodes after {env.max_episode_steps} steps; collection needs '
                          f'max_episode_steps >= steps ({steps})')
-    walls = None if grid is None else jnp.asarray(mazes.validate_grid(grid, env.maze))  # None: the maze's own
-    grid = np.asarray(env.layout if grid is None else walls)
+    if grid is None:  # the maze's own walls, which the environment holds already
+        walls, grid = None, np.asarray(env.layout)
+    else:
+        grid = mazes.validate_grid(grid, env.maze)
+        walls = jnp.asarray(grid)
     h, w = grid.shape
     free = jnp.asarray(free_cells(grid))
     junctions = jnp.asarray(junction_cells(grid))
@@ -292,7 +295,8 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     batch = min(int(cfg.batch), total)
     bar = _progress(total, f'collect {cfg.env} {cfg.style}', progress)
     ticks = ChunkBar(bar)
-    run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise, progress=ticks, grid=None if cfg.layout == shifts.BASE else cfg.grid())))
+    grid = None if cfg.layout == shifts.BASE else cfg.grid()
+    run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise, progress=ticks, grid=grid)))
     base = jax.random.PRNGKey(cfg.seed)
     n, t = total * cfg.steps, cfg.steps
     nq, nv = env.mj_model.nq, env.mj_model.nv
@@ -378,7 +382,6 @@ def plot(result: CollectResult, path: str, n: int = 12) -> None:
     """Trajectories of the first ``n`` training episodes over the maze, as a PNG."""
     from aqm_mjx.envs import render  # pylint: disable=import-outside-toplevel
 
-    _, maze = envs.parse_name(result.config.env)
     t = result.config.steps
     xy = result.train['qpos'][:, :2]
     m = min(n, result.config.episodes)
