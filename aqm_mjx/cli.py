@@ -242,18 +242,25 @@ def cmd_run(a):
           f'{cfg.train.batch_size}), {cfg.protocol.episodes} evaluation episodes per task, on {jax.devices()[0]}; '
           f'output in {out}')
     if not a.one_program:
-        run.run_stepwise(cfg, out, dataset=a.dataset, collect_episodes=a.collect_episodes,
+        run.run_stepwise(cfg, out, dataset=a.dataset, collect_episodes=_collect_episodes(a),
                          collect_batch=a.collect_batch, shift=a.shift)
         return 0
     if a.shift != 'base':
         raise ValueError('--one-program evaluates the base layout; drop --shift')
     with files.run_lock(out):  # one writer per run folder
-        path = run.data_stage(a.env, out, a.dataset, a.collect_episodes, a.collect_batch)
+        path = run.data_stage(a.env, out, a.dataset, _collect_episodes(a), a.collect_batch)
         data = run.read_data(path, envs.make(a.env))
         res = run.run_one_program(cfg, data, a.seeds)
         files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
     print(f'wrote {out}/one_program.json')
     return 0
+
+
+def _collect_episodes(a) -> int:
+    """--collect-episodes, or the preset's data size when it is not given."""
+    from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
+
+    return pipeline.collect_episodes(a.preset) if a.collect_episodes is None else a.collect_episodes
 
 
 def cmd_evaluate(a):
@@ -287,7 +294,7 @@ def cmd_compare(a):
 
     out = a.out or os.path.join('runs', f'compare-{a.env}-{a.style}')
     compare.compare(a.env, a.methods, a.seeds, out, preset=a.preset, dataset=a.dataset, style=a.style,
-                    collect_episodes=a.collect_episodes, collect_batch=a.collect_batch,
+                    collect_episodes=_collect_episodes(a), collect_batch=a.collect_batch,
                     overrides=(a.set or []) + ([f'protocol.backend={a.backend}'] if a.backend else [])
                     + ([f'protocol.workers={a.workers}'] if a.workers is not None else []),
                     shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed)
@@ -302,7 +309,8 @@ def _one_line(err: BaseException) -> str:
     return text or type(err).__name__
 
 
-def main(argv=None):
+def build_parser() -> argparse.ArgumentParser:
+    """The ``aqm-mjx`` command line: one subcommand per job, each with its ``fn``."""
     from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
     from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
 
@@ -319,14 +327,15 @@ def main(argv=None):
     r.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
     r.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default='cpu', choices=presets,
-                   help='every default of the run: cpu (minutes on a 2-core CPU), paper (the paper\'s sizes; for a '
-                        'GPU), ci (seconds; tests)')
+                   help='every default of the run: cpu (minutes on a 2-core CPU), cpu-long (about an hour: 400 '
+                        'episodes, 50,000 updates), paper (the paper\'s sizes; for a GPU), ci (seconds; tests)')
     r.add_argument('--set', action='append', metavar='SECTION.FIELD=VALUE',
                    help='override any config field, e.g. --set train.batch_size=512 --set map.delta=10 (a field '
                         'name alone where it is unique: --set steps=400); repeatable')
     r.add_argument('--out', default=None, help='run folder (default runs/ENV)')
     r.add_argument('--dataset', default=None, help='an OGBench-format .npz to train on instead of collecting')
-    r.add_argument('--collect-episodes', type=int, default=100, help='navigate episodes to collect (1001 states each)')
+    r.add_argument('--collect-episodes', type=int, default=None,
+                   help="navigate episodes to collect (1001 states each; default: the preset's, 100 or 400 for cpu-long)")
     r.add_argument('--collect-batch', type=int, default=55,
                    help='episodes collected side by side (default: the 100 + 10 of the default run in 2 calls)')
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
@@ -389,7 +398,7 @@ def main(argv=None):
                    help='environment; inferred from a file name such as antmaze-large-navigate-v0.npz when omitted')
     t.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
     t.add_argument('--preset', default='cpu', choices=presets,
-                   help='cpu: minutes on a 2-core CPU; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
+                   help='cpu: minutes on a 2-core CPU; cpu-long: 50,000 updates; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
                         'ci: smoke tests')
     t.add_argument('--set', action='append', metavar='FIELD=VALUE',
                    help='override a training config field, e.g. --set batch_size=512 --set q_hidden=512,512 (repeatable)')
@@ -446,7 +455,8 @@ def main(argv=None):
     k.add_argument('--dataset', default=None, help='an OGBench-format .npz instead of collecting')
     k.add_argument('--style', default='navigate', choices=['navigate', 'stitch', 'explore'],
                    help='the dataset to collect (taken from the file name with --dataset)')
-    k.add_argument('--collect-episodes', type=int, default=100, help='episodes to collect')
+    k.add_argument('--collect-episodes', type=int, default=None,
+                   help="episodes to collect (default: the preset's, 100 or 400 for cpu-long)")
     k.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
     k.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
     k.add_argument('--backend', default=None, choices=['mjx', 'ogbench'],
@@ -456,7 +466,11 @@ def main(argv=None):
                                                              'environments (default 0: this process)')
     k.add_argument('--out', default=None, help='comparison folder (default runs/compare-ENV-STYLE)')
     k.set_defaults(fn=cmd_compare)
-    a = p.parse_args(argv)
+    return p
+
+
+def main(argv=None):
+    a = build_parser().parse_args(argv)
     try:
         return a.fn(a)
     except (ValueError, TypeError, OSError, RuntimeError) as err:

@@ -30,7 +30,8 @@ from aqm_mjx.mapping.build import MapConfig, build_map
 
 SECTIONS = ('map', 'agent', 'protocol')  # the sections beside train, whose fields are command-line options
 
-# Every default of a run, once. Keys are RunConfig sections; 'train' names the method's preset.
+# Every default of a run, once. Keys are RunConfig sections; 'train' names the method's preset;
+# 'collect_episodes' is the data a run collects when no --dataset or --collect-episodes is given.
 PRESETS = {
     # tests and notebooks: seconds on a CPU
     'ci': dict(train='ci', map=dict(delta=0.5, max_keypoints=32, candidates=400),
@@ -38,6 +39,9 @@ PRESETS = {
     # minutes on a 2-core CPU; map and agent values measured at this scale (RESULTS.md sections 3-4)
     'cpu': dict(train='cpu', map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
                 protocol=dict(episodes=4, envs=64)),
+    # about an hour on a 2-core CPU for antmaze-large navigate with 2 seeds: 4x the data, 2.5x the updates
+    'cpu-long': dict(train='cpu-long', map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
+                     protocol=dict(episodes=20, envs=64), collect_episodes=400),
     # the paper's sizes (Appendix 10): delta 10 (its best in Figure 10, swept 10-25), OGBench's 50 episodes
     'paper': dict(train='paper', map=dict(delta=10.0), agent=dict(kappa=0.25, switch_radius=5.0),
                   protocol=dict(episodes=50, envs=1024)),
@@ -64,7 +68,7 @@ class RunConfig:
     @classmethod
     def preset(cls, name: str, method: str = 'aqm', env: Optional[str] = None, seed: int = 0,
                style: Optional[str] = None) -> 'RunConfig':
-        """Preset ``name`` (``ci``, ``cpu``, ``paper``) for ``method`` on ``env``, trained on data of
+        """Preset ``name`` (``ci``, ``cpu``, ``cpu-long``, ``paper``) for ``method`` on ``env``, trained on data of
         ``style`` (the method's rules for it: AQM draws uniform random goals on ``explore`` data)."""
         if name not in PRESETS:
             raise ValueError(f'unknown run preset {name!r}; expected one of {", ".join(PRESETS)}')
@@ -104,6 +108,13 @@ class RunConfig:
             by_section.setdefault(section, []).append(rest)
         return dataclasses.replace(self, **{s: cfg_lib.with_overrides(getattr(self, s), p)
                                             for s, p in by_section.items()})
+
+
+def collect_episodes(preset: str) -> int:
+    """Episodes a run of ``preset`` collects when the user names no number (100 unless the preset says)."""
+    if preset not in PRESETS:
+        raise ValueError(f'unknown run preset {preset!r}; expected one of {", ".join(PRESETS)}')
+    return PRESETS[preset].get('collect_episodes', 100)
 
 
 def stage_keys(key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

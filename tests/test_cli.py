@@ -74,3 +74,26 @@ def test_run_config_overrides_name_the_problem():
     # presets hold the paper's evaluation defaults for a paper run
     paper = pipeline.RunConfig.preset('paper')
     assert 10 <= paper.map.delta <= 25 and paper.train.batch_size == 1024 and paper.protocol.episodes == 50
+
+
+def test_cpu_long_preset_scales_the_cpu_run_for_every_method():
+    import pytest
+
+    from aqm_mjx import cli, pipeline
+    from aqm_mjx.learn import methods
+
+    cpu, long = pipeline.RunConfig.preset('cpu', env='antmaze-large'), pipeline.RunConfig.preset('cpu-long',
+                                                                                               env='antmaze-large')
+    # same networks and map, 2.5x the updates, 4x the data, OGBench-sized evaluation of 20 episodes per task
+    assert (long.train.steps, cpu.train.steps) == (50_000, 20_000) and long.train.q_hidden == cpu.train.q_hidden
+    assert long.map == cpu.map and long.protocol.episodes == 20 and long.train.preset == 'cpu-long'
+    assert (pipeline.collect_episodes('cpu-long'), pipeline.collect_episodes('cpu')) == (400, 100)
+    for name in methods.names():  # every registered method has the preset
+        assert pipeline.RunConfig.preset('cpu-long', method=name).train.steps == 50_000, name
+    with pytest.raises(ValueError, match="unknown run preset 'cpu-longer'"):
+        pipeline.collect_episodes('cpu-longer')
+    # the CLI takes the preset's data size unless --collect-episodes says otherwise
+    parser = cli.build_parser()
+    assert cli._collect_episodes(parser.parse_args(['run', '--preset', 'cpu-long'])) == 400
+    assert cli._collect_episodes(parser.parse_args(['compare', '--preset', 'cpu-long', '--collect-episodes', '7'])) == 7
+    assert cli._collect_episodes(parser.parse_args(['run'])) == 100

@@ -80,7 +80,8 @@ class BaselineConfig(LoopConfig):
     @classmethod
     def preset(cls, name: str, **overrides):
         """``paper``: OGBench's sizes (batch 1024, 3 x 512, 10^6 updates); ``cpu``: AQM's cpu scale
-        (batch 256, 3 x 256, 20,000 updates); ``ci``: tests."""
+        (batch 256, 3 x 256, 20,000 updates); ``cpu-long``: ``cpu`` for 50,000
+        updates; ``ci``: tests."""
         if name not in PRESETS:
             raise ValueError(f'unknown preset {name!r}; expected one of {", ".join(PRESETS)}')
         return cls(**{**PRESETS[name], **cls.PRESET_OVERRIDES.get(name, {}), 'preset': name, **overrides})
@@ -93,6 +94,8 @@ PRESETS = {
                   actor_hidden=(512, 512, 512), value_hidden=(512, 512, 512), conditioning='goal'),
     'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000,
                 actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
+    'cpu-long': dict(steps=50_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000,
+                     actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
     'ci': dict(steps=200, batch_size=64, updates_per_call=50, log_every=50, checkpoint_every=100,
                actor_hidden=(32, 32), value_hidden=(32, 32)),
 }
