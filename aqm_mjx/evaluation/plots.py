@@ -3,6 +3,8 @@ trajectories over the maze with the keypoint graph, the path taken through it an
 
 from __future__ import annotations
 
+import textwrap
+
 from typing import Optional, Sequence
 
 import numpy as np
@@ -60,7 +62,8 @@ def heatmap(rows: Sequence[str], cols: Sequence[str], values: np.ndarray, path: 
     """Success (%) as a heatmap, rows x columns (the paper's Figure 3 layout)."""
     plt = render.pyplot()
     v = 100 * np.asarray(values, float)
-    fig, ax = plt.subplots(figsize=(1.1 * len(cols) + 2.5, 0.55 * len(rows) + 1.6), dpi=100)
+    width = 1.1 * len(cols) + 3.3
+    fig, ax = plt.subplots(figsize=(width, 0.55 * len(rows) + 1.6), dpi=100)
     im = ax.imshow(v, cmap='RdYlGn', vmin=0, vmax=100, aspect='auto')
     for i in range(v.shape[0]):
         for j in range(v.shape[1]):
@@ -69,7 +72,7 @@ def heatmap(rows: Sequence[str], cols: Sequence[str], values: np.ndarray, path: 
     ax.set_yticks(np.arange(len(rows)), rows)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title, fontsize=9)
+    ax.set_title(textwrap.fill(title, int(6 * width)), fontsize=9)  # a long title wraps, not clipped
     fig.colorbar(im, ax=ax, label='success (%)')
     return render.finish(plt, fig, path)  # pylint: disable=protected-access
 
