@@ -134,7 +134,8 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         progress: optional host callback ``progress(step)`` during training.
     Returns:
         ``run(key [2], dataset: Dataset) -> dict`` with ``success [agents, layouts, tasks]`` (rates),
-        ``episode_success [E]``, ``pruned [E]``, ``legs [E, MAX_LEGS, 3]`` and ``n_legs [E]`` in the
+        ``episode_success [E]``, ``pruned [E]`` (legs overrun), ``removed [E]`` (keypoint edges cut),
+        ``legs [E, MAX_LEGS, 3]`` and ``n_legs [E]`` in the
         order of ``run.episodes.table``,
         ``keypoints`` (count), ``overflow``, ``metrics`` (last chunk's means) and ``params``.
         ``run.episodes`` describes the episodes, ``run.learner`` the method's functions.
@@ -160,7 +161,8 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         out = rollout(params, graph, proto.table_inputs(episodes, k_eval))
         success = out['success'] > 0
         rates, _ = proto.success_rates(episodes, success, out['pruned'])
-        return dict(success=rates, episode_success=success, pruned=out['pruned'], legs=out['legs'],
+        return dict(success=rates, episode_success=success, pruned=out['pruned'], removed=out['removed'],
+                    legs=out['legs'],
                     n_legs=out['n_legs'], keypoints=count,
                     overflow=overflow, metrics=metrics, params=params)
 

@@ -113,6 +113,57 @@ def test_stall_rule_and_leg_log_by_hand():
     assert int(b.pruned) == 0 and int(b.max_stall) > 40
 
 
+def _ladder_case(slack):
+    """Keypoints on two sides of a gap, latents are positions, d is Euclidean, tau 12 (every A -> B
+    edge exists, none A -> C): A0 (0, 0), A1 (0, 1), A2 (-1, 3) | B0 (10, 0), B1 (10, 1), B2 (10, 3)
+    | C (20, 0). Map distances from A0: A1 1, A2 sqrt 10 = 3.16; from B0: B1 1, B2 3."""
+    dist = lambda x, y: jnp.linalg.norm(x - y)  # noqa: E731
+    z = np.array([[0, 0], [0, 1], [-1, 3], [10, 0], [10, 1], [10, 3], [20, 0]], np.float32)
+    d = np.linalg.norm(z[:, None] - z[None], axis=-1)
+    w = np.where(d <= 12.0, d, np.inf).astype(np.float32)
+    g = Graph(z=jnp.asarray(z), obs=jnp.zeros((7, 2)), mask=jnp.ones(7, bool), w=jnp.asarray(w), tau=jnp.float32(12.0))
+    return dist, g, AgentConfig(kappa=0.5, switch_radius=0.5, cut_slack=slack)
+
+
+A_TO_B = [(a, b) for a in (0, 1, 2) for b in (3, 4, 5)]
+
+
+@pytest.mark.parametrize('slack, cut, hop', [
+    (0.0, [(0, 3)], 4),  # the paper: the overrun edge alone; the new plan crosses A0 -> B1 (10.05 + 10.05)
+    (0.05, [(0, 3)], 4),  # neighbourhoods of radius 0.5: A0 and B0 alone
+    (0.15, [(0, 3), (0, 4), (1, 3), (1, 4)], 5),  # radius 1.5: A0, A1 -> B0, B1; A0 -> B2 -> C is left
+    (0.5, A_TO_B, -1),  # radius 5: every A -> B edge; no path is left, the agent aims at the goal
+])
+def test_an_overrun_cuts_its_parallel_edges_by_hand(slack, cut, hop):
+    """Planned s -> A0 -> B0 -> C -> g and stuck between A0 and B0: after (1 + 0.5) 10 = 15 steps
+    the edge A0 -> B0 overruns (one leg pruned) and, with ``cut_slack``, takes with it the edges
+    from within ``slack * 10`` of A0 to within ``slack * 10`` of B0. The edges back (B -> A), inside
+    a side (A -> A, B -> B) and on (B -> C) stay."""
+    dist, g, cfg = _ladder_case(slack)
+    # s 2.5 from A0 and 12.5 from B0 (beyond tau), g 2.5 from C
+    a = rules.agent_init(dist, g, jnp.array([-2.5, 0.0]), jnp.array([22.5, 0.0]), 0.5)
+    a = rules.agent_step(dist, g, cfg, a, jnp.array([0.0, 0.0]), 0.5)  # A0 reached: next hop B0, budget 15
+    assert (int(a.node), int(a.prev), float(a.budget)) == (3, 0, 15.0)
+    for _ in range(16):
+        a = rules.agent_step(dist, g, cfg, a, jnp.array([4.0, 0.0]), 0.5)
+    assert int(a.pruned) == 1 and int(a.removed) == len(cut) and bool(a.needs_replan)
+    expect = np.asarray(g.w).copy()
+    for i, j in cut:
+        expect[i, j] = np.inf
+    np.testing.assert_array_equal(np.asarray(a.w), expect)
+    np.testing.assert_array_equal(np.asarray(a.cuts[0]), [0, 3])  # the overrun edge is the one logged
+    batch = lambda x: jax.tree.map(lambda v: v[None], x)  # noqa: E731
+    a = jax.tree.map(lambda v: v[0], jax.vmap(rules.redirect)(rules.replan(batch(a)), jnp.array([0.5])))
+    assert int(a.node) == hop
+
+
+def test_cut_slack_must_be_below_one():
+    with pytest.raises(ValueError, match='cut_slack must be in'):
+        AgentConfig(cut_slack=1.0)
+    with pytest.raises(ValueError, match='cut_slack must be in'):
+        AgentConfig(cut_slack=-0.1)
+
+
 def _scenario(agent, n, steps, kappas, patience=None):
     """antmaze/pointmaze-medium task 4, the shortest route's corridor cell (5, 3) closed; ``n``
     episodes per kappa (and per ``patience``, 0 the fixed rule)."""
@@ -156,6 +207,8 @@ def test_pruning_reroutes_the_point_around_a_closed_corridor_and_compiles_once()
     _check(out, 10, kappas[:2])
     stall = slice(20, 30)
     assert out['success'][stall].mean() >= 0.9 and out['pruned'][stall].min() >= 1  # the stall rule reroutes too
+    # without parallel cuts an overrun removes at most its one keypoint edge (goal and start legs: none)
+    assert (out['removed'] <= out['pruned']).all() and out['removed'][:10].min() >= 1
     # a second call with other tasks, seeds and walls does not recompile
     keys = rollout.episode_keys(jax.random.PRNGKey(7), np.arange(b))
     out2 = jax.device_get(run(aux, graph, rollout.episode_inputs(keys, np.arange(b) % 5 + 1, base, kappa, True,

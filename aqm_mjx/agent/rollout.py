@@ -132,8 +132,9 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
     aims its controller at the goal and ignores ``graph`` (which may be None).
     Returns:
         ``run(aux, graph, inputs: EpisodeInputs) -> dict`` with ``success [B]`` (at the goal at the
-        last step), ``pruned [B]``, ``cuts [B, MAX_CUTS, 2]``, ``legs [B, MAX_LEGS, 3]`` (completed
-        legs: d, steps, longest stall; -1 padded), ``n_legs [B]``, ``xy [T, B, 2]``, ``node [T, B]``
+        last step), ``pruned [B]`` (legs overrun), ``removed [B]`` (keypoint edges cut), ``cuts [B,
+        MAX_CUTS, 2]``, ``legs [B, MAX_LEGS, 3]`` (completed legs: d, steps, longest stall; -1 padded),
+        ``n_legs [B]``, ``xy [T, B, 2]``, ``node [T, B]``
         and ``goal_xy [B, 2]``.
     """
     decide = make_decide(agent, cfg)
@@ -164,13 +165,14 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
 
 
 def plan_outputs(agents, b: int, xp=np) -> dict:
-    """The agent-state outputs of a rollout: ``pruned [B]``, ``cuts [B, MAX_CUTS, 2]``, ``legs
-    [B, MAX_LEGS, 3]``, ``n_legs [B]`` from ``agents``, or nothing pruned, cut or logged for an agent
+    """The agent-state outputs of a rollout: ``pruned [B]``, ``removed [B]``, ``cuts [B, MAX_CUTS, 2]``,
+    ``legs [B, MAX_LEGS, 3]``, ``n_legs [B]`` from ``agents``, or nothing pruned, cut or logged for an agent
     without a quasimetric (``agents == ()``). ``xp``: ``jnp`` inside a program, ``np`` on the host."""
     if isinstance(agents, tuple):
-        return dict(pruned=xp.zeros((b,), xp.int32), cuts=xp.full((b, MAX_CUTS, 2), -1, xp.int32),
-                    legs=xp.full((b, MAX_LEGS, 3), -1.0, xp.float32), n_legs=xp.zeros((b,), xp.int32))
-    return {k: xp.asarray(getattr(agents, k)) for k in ('pruned', 'cuts', 'legs', 'n_legs')}
+        return dict(pruned=xp.zeros((b,), xp.int32), removed=xp.zeros((b,), xp.int32),
+                    cuts=xp.full((b, MAX_CUTS, 2), -1, xp.int32), legs=xp.full((b, MAX_LEGS, 3), -1.0, xp.float32),
+                    n_legs=xp.zeros((b,), xp.int32))
+    return {k: xp.asarray(getattr(agents, k)) for k in ('pruned', 'removed', 'cuts', 'legs', 'n_legs')}
 
 
 def make_host_rollout(envs, agent: Agent, cfg: AgentConfig, steps: int, progress: Optional[Callable] = None,

@@ -15,10 +15,12 @@ untraversable in the environment's own copy of the graph and replan (paper secti
   attachment, a start leg bans that entry keypoint and re-attaches from where the agent stands.
   After a prune the agent replans and heads from where it is to the next hop after the pruned leg's
   start. ``kappa = inf`` disables pruning under either rule.
-- Leg log: every leg that ends at its keypoint is recorded as (d(from, to), steps taken, longest
-  stall) in ``legs`` (the first :data:`MAX_LEGS`; ``n_legs`` counts all), the measurement that
-  calibrates either rule (:mod:`aqm_mjx.evaluation.calibration`).
-- ``use_graph=False`` is the flat policy: the target is always the goal.
+- Parallel cuts (``cut_slack`` > 0, off by default: the paper cuts the one edge): a keypoint edge
+  z_i -> z_j that overruns also takes with it every edge z_a -> z_b that starts within ``cut_slack
+  * w(i, j)`` of z_i and ends within that of z_j (map distances, either way). The overrun says z_j's
+  side cannot be reached from z_i's in the leg's time: edges between the same two neighbourhoods
+  cross the same blockage. Without them a closed corridor crossed by k such edges costs k overruns,
+  one budget each (RESULTS.md, section 9).
 """
 
 from __future__ import annotations
@@ -53,6 +55,9 @@ class AgentConfig:
                              'many consecutive steps without progress in d(s, target)')
     progress: float = option(1.0, 'stall rule: a step makes progress when d(s, target) falls this far below its best '
                              'on the leg (units of d: control steps)')
+    cut_slack: float = option(0.0, "0: an overrun cuts its one edge (the paper); in (0, 1): it also cuts the "
+                              'edges parallel to it, those whose ends lie within cut_slack times the leg of its '
+                              'ends (RESULTS.md, section 9)')
     replan_slots: int = option(0, 'pruning environments replanned per Floyd-Warshall pass (speed only); '
                                '0: 8 on a CPU, 256 elsewhere')
 
@@ -67,6 +72,9 @@ class AgentConfig:
                              f'got {self.patience}')
         if not (math.isfinite(self.progress) and self.progress >= 0):
             raise ValueError(f'AgentConfig.progress must be a finite number >= 0; got {self.progress}')
+        if not 0 <= self.cut_slack < 1:
+            raise ValueError(f'AgentConfig.cut_slack must be in [0, 1) (0: cut the overrun edge alone); '
+                             f'got {self.cut_slack}')
         if isinstance(self.replan_slots, bool) or not isinstance(self.replan_slots, int) or self.replan_slots < 0:
             raise ValueError(f'AgentConfig.replan_slots must be an integer >= 0 (0: by device); got {self.replan_slots}')
 
@@ -107,6 +115,7 @@ class AgentState:
     legs: jax.Array  # float32 [MAX_LEGS, 3] completed legs: (d(from, to), steps, longest stall); -1 padded
     n_legs: jax.Array  # int32 legs completed (all of them; the first MAX_LEGS are in ``legs``)
     pruned: jax.Array  # int32 legs marked untraversable so far (edges, goal and start attachments)
+    removed: jax.Array  # int32 keypoint edges set to inf so far (overrun edges; with cut_slack, their parallels)
     cuts: jax.Array  # int32 [MAX_CUTS, 2] the first MAX_CUTS pruned keypoint edges (i, j), -1 padded (plots)
     needs_replan: jax.Array  # bool: w or to_g changed this step
 
@@ -117,6 +126,24 @@ def leg_budget(leg_d: jax.Array, kappa: jax.Array, patience: jax.Array) -> jax.A
     fixed = (1.0 + kappa) * leg_d
     stall = jnp.where(jnp.isfinite(kappa) & jnp.isfinite(leg_d), patience, jnp.inf)
     return jnp.where(patience > 0, stall, fixed).astype(jnp.float32)
+
+
+def parallel_edges(dist: jax.Array, w: jax.Array, i: jax.Array, j: jax.Array, leg: jax.Array,
+                   slack: float) -> jax.Array:
+    """The edges an overrun of ``z_i -> z_j`` (length ``leg``) cuts: bool ``[K, K]``.
+
+    ``slack`` 0 (static): the edge (i, j) alone. ``slack`` in (0, 1): also every edge (a, b) whose
+    start lies within ``slack * leg`` of z_i and whose end lies within ``slack * leg`` of z_j, in map
+    distance either way (``dist``: map distances ``[K, K]``, ``w``: edge weights ``[K, K]``).
+    ``slack < 1`` keeps the edges out of z_j and into z_i (``dist[i, j] = leg``) uncut."""
+    k = w.shape[0]
+    one = (jnp.arange(k)[:, None] == i) & (jnp.arange(k)[None, :] == j)
+    if not slack:
+        return one
+    lim = slack * leg
+    near_i = jnp.minimum(dist[i], dist[:, i]) <= lim  # [K] starts next to z_i
+    near_j = jnp.minimum(dist[j], dist[:, j]) <= lim  # [K] ends next to z_j
+    return one | (near_i[:, None] & near_j[None, :] & jnp.isfinite(w))
 
 
 def _entry(a_dist: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Array, kappa, patience) -> tuple:
@@ -144,7 +171,7 @@ def agent_init(dist: Callable, graph: Graph, s: jax.Array, g: jax.Array, kappa: 
                       node=node, prev=prev, t_edge=jnp.int32(0), budget=budget, leg_d=leg_d,
                       best=jnp.float32(jnp.inf), stall=jnp.int32(0), max_stall=jnp.int32(0),
                       legs=jnp.full((MAX_LEGS, 3), -1.0, jnp.float32), n_legs=jnp.int32(0), pruned=jnp.int32(0),
-                      cuts=jnp.full((MAX_CUTS, 2), -1, jnp.int32), needs_replan=jnp.bool_(False))
+                      removed=jnp.int32(0), cuts=jnp.full((MAX_CUTS, 2), -1, jnp.int32), needs_replan=jnp.bool_(False))
 
 
 def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array, patience: jax.Array) -> tuple:
@@ -190,7 +217,8 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     goal_over = over & (a.prev >= 0) & (a.node < 0)
     start_over = over & (a.prev == START) & (a.node >= 0)
     i, j = jnp.maximum(a.prev, 0), k
-    w = jnp.where(edge_over, a.w.at[i, j].set(jnp.inf), a.w)
+    cut = parallel_edges(a.dist, a.w, i, j, a.leg_d, cfg.cut_slack) & edge_over
+    w = jnp.where(cut, jnp.inf, a.w)
     to_g = jnp.where(goal_over, a.to_g.at[i].set(jnp.inf), a.to_g)
     banned = a.banned | (start_over & (jnp.arange(a.banned.shape[0]) == k))
     used = jnp.sum(a.cuts[:, 0] >= 0)  # keypoint edges cut so far (pruned also counts attachments)
@@ -213,7 +241,8 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
                      stall=jnp.where(new_leg, 0, stall).astype(jnp.int32),
                      max_stall=jnp.where(new_leg, 0, max_stall).astype(jnp.int32),
                      legs=legs, n_legs=a.n_legs + logged.astype(jnp.int32),
-                     pruned=a.pruned + over.astype(jnp.int32), needs_replan=back)
+                     pruned=a.pruned + over.astype(jnp.int32),
+                     removed=a.removed + jnp.sum(cut & jnp.isfinite(a.w)).astype(jnp.int32), needs_replan=back)
 
 
 def redirect(a: AgentState, kappa: jax.Array, patience: jax.Array = 0.0) -> AgentState:

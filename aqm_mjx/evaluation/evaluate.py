@@ -62,6 +62,7 @@ class Results(NamedTuple):
     timing: dict
     legs: np.ndarray  # float32 [E, MAX_LEGS, 3] completed legs (d, steps, longest stall), -1 padded
     n_legs: np.ndarray  # int32 [E] legs completed (the first MAX_LEGS are in ``legs``)
+    removed: Optional[np.ndarray] = None  # int32 [E] keypoint edges cut (``pruned`` counts overruns)
 
 
 HOOK = Hook()  # the host callback compiled into every evaluation program; evaluate() points it at its bar
@@ -111,8 +112,8 @@ def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional
         return jax.jit(run)
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec('env'))
     time_env = NamedSharding(mesh, PartitionSpec(None, 'env'))
-    out = dict(success=shard, pruned=shard, cuts=shard, legs=shard, n_legs=shard, xy=time_env, node=time_env,
-               goal_xy=shard)
+    out = dict(success=shard, pruned=shard, removed=shard, cuts=shard, legs=shard, n_legs=shard, xy=time_env,
+               node=time_env, goal_xy=shard)
     return jax.jit(run, in_shardings=(rep, rep, shard), out_shardings=out)
 
 
@@ -145,7 +146,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec('env'))
     aux, graph = jax.device_put((agent.aux, graph), rep)
     n = len(table.task)
-    success, pruned = np.zeros(n, bool), np.zeros(n, np.int32)
+    success, pruned, removed = np.zeros(n, bool), np.zeros(n, np.int32), np.zeros(n, np.int32)
     legs, n_legs = np.full((n, MAX_LEGS, 3), -1.0, np.float32), np.zeros(n, np.int32)
     first = {}  # (agent, layout, task) -> row of its first episode, whose trajectory is kept
     for r in range(n):
@@ -174,6 +175,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
             timing.setdefault('first_chunk_s', time.perf_counter() - t_c)
             success[rows[real]] = success_c[real]
             pruned[rows[real]] = pruned_c[real]
+            removed[rows[real]] = fetch_global(out['removed'])[real]
             legs[rows[real]], n_legs[rows[real]] = fetch_global(out['legs'])[real], fetch_global(out['n_legs'])[real]
             wanted = [(i, rows[i]) for i in np.flatnonzero(real) if rows[i] in keep]
             if wanted:
@@ -197,4 +199,5 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     rates, prunes = jax.device_get(proto.success_rates(eps, success, pruned))
     names = list(eps.variants)
     summary = proto.format_summary(rates, eps.agents, names, eps.task_ids, prunes)
-    return Results(eps.agents, names, eps.task_ids, table, success, pruned, summary, traces, timing, legs, n_legs)
+    return Results(eps.agents, names, eps.task_ids, table, success, pruned, summary, traces, timing, legs, n_legs,
+                   removed)
