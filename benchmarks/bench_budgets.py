@@ -14,9 +14,12 @@ For every checkpoint (a seed), with one map (``stage_keys(PRNGKey(--seed))``, as
    (``aqm``), the fixed rule at the calibrated kappa, the stall rule at the calibrated patience, no
    pruning and the flat policy (unless ``--no-flat``); layouts: the training layout and the
    closed-corridor layouts of the shift suite (``--shift all`` adds the opened walls).
+3. With ``--cut-slack S``: the calibrated rows again with parallel cuts at slack S (an overrun
+   also cuts the edges on a near-shortest map route of its leg, ``AgentConfig.cut_slack``).
 
 Prints per row and layout: success pooled over seeds with its 95% Wilson interval, the per-seed
-means, and the legs cut per episode; writes ``rows.json``.
+means, the legs cut per episode (overruns) and the keypoint edges removed per episode (more than the
+overruns with ``--cut-slack``: an overrun also cuts the edges parallel to it); writes ``rows.json``.
 """
 
 from __future__ import annotations
@@ -40,12 +43,15 @@ from aqm_mjx.run import prepare_evaluation, read_data
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
 
-def cell(success, pruned) -> dict:
-    """One row x layout of one seed: its episodes' outcomes and legs cut, kept per episode so that
-    seeds pool by concatenation."""
+def cell(success, pruned, removed=None) -> dict:
+    """One row x layout of one seed: its episodes' outcomes, legs cut (overruns) and keypoint edges
+    removed (more than the overruns with parallel cuts), kept per episode so that seeds pool by
+    concatenation."""
     success, pruned = np.asarray(success, bool), np.asarray(pruned, int)
+    removed = pruned if removed is None else np.asarray(removed, int)
     return dict(success=int(success.sum()), n=int(success.size), pruned=float(pruned.mean()),
-                episodes_success=success.tolist(), episodes_pruned=pruned.tolist())
+                removed=float(removed.mean()), episodes_success=success.tolist(), episodes_pruned=pruned.tolist(),
+                episodes_removed=removed.tolist())
 
 
 def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> dict:
@@ -98,10 +104,25 @@ def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> di
     res = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, patience=0.0), proto, variants,
                             key=k_eval, progress=a.progress)
     rows = {}
-    for i, ag in enumerate(res.agents):
-        for j, v in enumerate(res.variants):
-            sel = (res.table.agent == i) & (res.table.variant == j)
-            rows[(names[ag], v)] = cell(res.success[sel], res.pruned[sel])
+
+    def collect(res, names):
+        for i, ag in enumerate(res.agents):
+            for j, v in enumerate(res.variants):
+                sel = (res.table.agent == i) & (res.table.variant == j)
+                rows[(names[ag], v)] = cell(res.success[sel], res.pruned[sel], res.removed[sel])
+
+    collect(res, names)
+    # 3. parallel cuts: the calibrated rules again, on the same episodes, an overrun also cutting the
+    # edges parallel to it (AgentConfig.cut_slack); the AQM row of this pass is the calibrated fixed rule
+    for slack in a.cut_slack:
+        for q, (kappa_c, patience_c) in zip(a.false_alarm, settings):
+            at = f' at {q:.1%}' if several else ''
+            agent_cfg = dataclasses.replace(cfg.agent, kappa=kappa_c, patience=0.0, cut_slack=slack)
+            proto_s = dataclasses.replace(proto, ablations=(f'stall={patience_c:g}',))
+            res_s = evaluate.evaluate(env, trained.agent, graph, agent_cfg, proto_s, variants, key=k_eval,
+                                      progress=a.progress)
+            collect(res_s, {'aqm': f'fixed, calibrated kappa{at}, parallel cuts {slack:g}',
+                            f'stall={patience_c:g}': f'stall, calibrated patience{at}, parallel cuts {slack:g}'})
     kappa_c, patience_c = settings[0]
     return dict(checkpoint=ckpt, keypoints=m['keypoints'], calibration=c, kappa=kappa_c, patience=patience_c,
                 calibrations=[dict(false_alarm=q, kappa=k, patience=p) for q, (k, p) in zip(a.false_alarm, settings)],
@@ -120,11 +141,17 @@ def main():
                    help="layouts: the training layout alone, with the closed corridors (default), or the whole suite")
     p.add_argument('--seed', type=int, default=0, help='map and episode keys: stage_keys(PRNGKey(seed))')
     p.add_argument('--set', action='append', default=[], help='map/agent/protocol override, e.g. protocol.tasks=1,2')
+    p.add_argument('--cut-slack', type=float, nargs='*', default=[],
+                   help='add the calibrated rows again with parallel cuts at each slack in (0, 1) '
+                        '(AgentConfig.cut_slack: an overrun also cuts the edges parallel to it)')
     p.add_argument('--no-flat', dest='flat', action='store_false',
                    help='leave out the flat row (its episodes mostly run to the step limit: the costliest row)')
     p.add_argument('--no-progress', dest='progress', action='store_false')
     p.add_argument('--out', help='folder for rows.json')
     a = p.parse_args()
+    bad_slack = [x for x in a.cut_slack if not 0 < x < 1]
+    if bad_slack:
+        p.error(f'--cut-slack values must be in (0, 1); got {bad_slack}')
     bad = [q for q in a.false_alarm if not 0 < q < 1]
     if bad:  # before any map or episode (calibrate() would refuse them only after the calibration pass)
         p.error(f'--false-alarm rates must be in (0, 1); got {bad}')
@@ -150,11 +177,13 @@ def main():
             per = ', '.join(f'{100 * c["success"] / c["n"]:.0f}' for c in cells)
             cut = stats.cuts_by_outcome(sum((c['episodes_success'] for c in cells), []),
                                         sum((c['episodes_pruned'] for c in cells), []))
-            print(f'{name:<36} {v:<10} {100 * k / n:5.1f}% [{100 * lo:4.1f}-{100 * hi:5.1f}]  seeds {per:<10} '
-                  f'cut/ep {cut["all"]:5.2f} (succeeded {cut["succeeded"]:5.2f}, failed {cut["failed"]:5.2f})')
+            removed = float(np.mean(sum((c['episodes_removed'] for c in cells), [])))
+            print(f'{name:<50} {v:<10} {100 * k / n:5.1f}% [{100 * lo:4.1f}-{100 * hi:5.1f}]  seeds {per:<10} '
+                  f'cut/ep {cut["all"]:5.2f} (succeeded {cut["succeeded"]:5.2f}, failed {cut["failed"]:5.2f}), '
+                  f'edges removed/ep {removed:5.2f}')
             out_rows.append(dict(rule=name, layout=v, success=k, n=n, wilson=[lo, hi], per_seed=per,
                                  cut_per_episode=cut['all'], cut_per_succeeded=cut['succeeded'],
-                                 cut_per_failed=cut['failed']))
+                                 cut_per_failed=cut['failed'], removed_per_episode=removed))
     for s in seeds:
         print(f"{s['checkpoint']}: calibrated " + ', '.join(f"kappa {c['kappa']}, patience {c['patience']:g} at "
                                                              f"{c['false_alarm']:.1%}" for c in s['calibrations']) + " "
