@@ -162,9 +162,8 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         success = out['success'] > 0
         rates, _ = proto.success_rates(episodes, success, out['pruned'])
         return dict(success=rates, episode_success=success, pruned=out['pruned'], removed=out['removed'],
-                    legs=out['legs'],
-                    n_legs=out['n_legs'], keypoints=count,
-                    overflow=overflow, metrics=metrics, params=params)
+                    legs=out['legs'], n_legs=out['n_legs'], keypoints=count, overflow=overflow, metrics=metrics,
+                    params=params)
 
     run.episodes, run.learner = episodes, learner
     return run

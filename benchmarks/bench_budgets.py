@@ -14,8 +14,9 @@ For every checkpoint (a seed), with one map (``stage_keys(PRNGKey(--seed))``, as
    (``aqm``), the fixed rule at the calibrated kappa, the stall rule at the calibrated patience, no
    pruning and the flat policy (unless ``--no-flat``); layouts: the training layout and the
    closed-corridor layouts of the shift suite (``--shift all`` adds the opened walls).
-3. With ``--cut-slack S``: the calibrated rows again with parallel cuts at slack S (an overrun
-   also cuts the edges on a near-shortest map route of its leg, ``AgentConfig.cut_slack``).
+3. With ``--cut-slack S``: the calibrated rows again with parallel cuts at slack S (an overrun of
+   z_i -> z_j also cuts the edges from within S w(i, j) of z_i to within S w(i, j) of z_j,
+   ``AgentConfig.cut_slack``).
 
 Prints per row and layout: success pooled over seeds with its 95% Wilson interval, the per-seed
 means, the legs cut per episode (overruns) and the keypoint edges removed per episode (more than the
@@ -43,12 +44,11 @@ from aqm_mjx.run import prepare_evaluation, read_data
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 
 
-def cell(success, pruned, removed=None) -> dict:
-    """One row x layout of one seed: its episodes' outcomes, legs cut (overruns) and keypoint edges
-    removed (more than the overruns with parallel cuts), kept per episode so that seeds pool by
-    concatenation."""
-    success, pruned = np.asarray(success, bool), np.asarray(pruned, int)
-    removed = pruned if removed is None else np.asarray(removed, int)
+def cell(success, pruned, removed) -> dict:
+    """One row x layout of one seed: its episodes' outcomes, legs cut (overruns, goal and start legs
+    included) and keypoint edges removed (more than the overruns with parallel cuts), kept per
+    episode so that seeds pool by concatenation."""
+    success, pruned, removed = np.asarray(success, bool), np.asarray(pruned, int), np.asarray(removed, int)
     return dict(success=int(success.sum()), n=int(success.size), pruned=float(pruned.mean()),
                 removed=float(removed.mean()), episodes_success=success.tolist(), episodes_pruned=pruned.tolist(),
                 episodes_removed=removed.tolist())

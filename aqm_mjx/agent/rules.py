@@ -21,6 +21,10 @@ untraversable in the environment's own copy of the graph and replan (paper secti
   side cannot be reached from z_i's in the leg's time: edges between the same two neighbourhoods
   cross the same blockage. Without them a closed corridor crossed by k such edges costs k overruns,
   one budget each (RESULTS.md, section 9).
+- Leg log: every leg that ends at its keypoint is recorded as (d(from, to), steps taken, longest
+  stall) in ``legs`` (the first :data:`MAX_LEGS`; ``n_legs`` counts all), the measurement that
+  calibrates either rule (:mod:`aqm_mjx.evaluation.calibration`).
+- ``use_graph=False`` is the flat policy: the target is always the goal.
 """
 
 from __future__ import annotations

@@ -62,7 +62,7 @@ class Results(NamedTuple):
     timing: dict
     legs: np.ndarray  # float32 [E, MAX_LEGS, 3] completed legs (d, steps, longest stall), -1 padded
     n_legs: np.ndarray  # int32 [E] legs completed (the first MAX_LEGS are in ``legs``)
-    removed: Optional[np.ndarray] = None  # int32 [E] keypoint edges cut (``pruned`` counts overruns)
+    removed: np.ndarray  # int32 [E] keypoint edges cut (``pruned`` counts overruns)
 
 
 HOOK = Hook()  # the host callback compiled into every evaluation program; evaluate() points it at its bar
