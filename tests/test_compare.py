@@ -179,6 +179,27 @@ def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(t
         compare.compare('pointmaze-medium', ['gcbc'], 2, out, preset='ci', dataset=path, overrides=over[:1], **QUIET)
 
 
+def test_baselines_take_ogbench_settings_for_stitch_and_explore_data():
+    """OGBench's hyperparameters.sh: on stitch data every method but GCBC draws half its actor goals
+    from random dataset states, on explore data all of them, with the explore alphas; navigate keeps
+    trajectory goals; a scoped override still wins."""
+    names = ['gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw']
+    for style, (p_rand, p_traj) in (('navigate', (0.0, 1.0)), ('stitch', (0.5, 0.5)), ('explore', (1.0, 0.0))):
+        cfgs = compare.method_configs('antmaze-medium', names, 'ci', style=style)
+        for n in names:
+            want = (0.0, 1.0) if n == 'gcbc' else (p_rand, p_traj)
+            assert (cfgs[n].train.actor_p_random, cfgs[n].train.actor_p_trajectory) == want, (n, style)
+    nav = compare.method_configs('antmaze-medium', names, 'ci', style='navigate')
+    exp = compare.method_configs('antmaze-medium', names, 'ci', style='explore')
+    assert [exp[n].train.alpha for n in ('gcivl', 'gciql', 'qrl', 'crl')] == [10.0, 0.01, 0.001, 0.003]
+    assert [nav[n].train.alpha for n in ('gcivl', 'gciql', 'qrl', 'crl')] == [10.0, 0.3, 0.003, 0.1]
+    assert (exp['hiql'].train.high_alpha, exp['hiql'].train.low_alpha) == (10.0, 10.0)
+    assert (nav['hiql'].train.high_alpha, nav['hiql'].train.low_alpha) == (3.0, 3.0)
+    scoped = compare.method_configs('antmaze-medium', ['gcivl'], 'ci', ['gcivl:actor_p_random=0.0',
+                                                                      'gcivl:actor_p_trajectory=1.0'], style='stitch')
+    assert scoped['gcivl'].train.actor_p_random == 0.0
+
+
 def test_the_explore_rule_reaches_every_entry_point(tmp_path, monkeypatch):
     """AQM draws uniform random policy goals on explore data (paper App. 10.3) in ``train``, ``run``
     (both paths build their config the same way) and ``compare``; other methods and other styles

@@ -75,12 +75,28 @@ register(Method('aqm-awr', aqm.AQMConfig, aqm.make, {'objective': 'awr'},
                 "AQM's quasimetric with a Q-AWR policy on the goal (ablation)", AQM_EXPLORE))
 register(Method('aqm-bc', aqm.AQMConfig, aqm.make, {'objective': 'bc'},
                 "AQM's quasimetric with a behaviour-cloned policy (ablation)", AQM_EXPLORE))
+# OGBench's per-dataset settings (impls/hyperparameters.sh, antmaze-*-stitch and -explore): actor goals from
+# random dataset states on data whose trajectories do not cross the maze, and the explore alphas. GCBC keeps
+# its trajectory goals. SAW's public settings for these styles are not known to us: it takes HIQL's goal
+# mixture (it shares HIQL's value and sampler) and keeps its alphas.
+STITCH_GOALS = {'actor_p_random': 0.5, 'actor_p_trajectory': 0.5}
+EXPLORE_GOALS = {'actor_p_random': 1.0, 'actor_p_trajectory': 0.0}
+
+
+def _ogbench_styles(**explore) -> dict:
+    return {'stitch': dict(STITCH_GOALS), 'explore': {**EXPLORE_GOALS, **explore}}
+
+
 register(Method('gcbc', gcbc.GCBCConfig, gcbc.make, summary='GCBC: goal-conditioned behaviour cloning'))
-register(Method('gcivl', gcivl.GCIVLConfig, gcivl.make, summary='GCIVL: implicit V-learning value, AWR actor'))
-register(Method('gciql', gciql.GCIQLConfig, gciql.make, summary='GCIQL: IQL Q and V, DDPG+BC actor'))
-register(Method('qrl', qrl.QRLConfig, qrl.make, summary="QRL (OGBench's): IQE quasimetric, latent dynamics, DDPG+BC"))
-register(Method('crl', crl.CRLConfig, crl.make, summary='CRL: contrastive critic (InfoNCE), DDPG+BC actor'))
+register(Method('gcivl', gcivl.GCIVLConfig, gcivl.make, summary='GCIVL: implicit V-learning value, AWR actor',
+                style_defaults=_ogbench_styles()))
+register(Method('gciql', gciql.GCIQLConfig, gciql.make, summary='GCIQL: IQL Q and V, DDPG+BC actor',
+                style_defaults=_ogbench_styles(alpha=0.01)))
+register(Method('qrl', qrl.QRLConfig, qrl.make, summary="QRL (OGBench's): IQE quasimetric, latent dynamics, DDPG+BC",
+                style_defaults=_ogbench_styles(alpha=0.001)))
+register(Method('crl', crl.CRLConfig, crl.make, summary='CRL: contrastive critic (InfoNCE), DDPG+BC actor',
+                style_defaults=_ogbench_styles(alpha=0.003)))
 register(Method('hiql', hiql.HIQLConfig, hiql.make, summary='HIQL: IVL value with goal representation, high and '
-                'low AWR policies'))
+                'low AWR policies', style_defaults=_ogbench_styles(high_alpha=10.0, low_alpha=10.0)))
 register(Method('saw', saw.SAWConfig, saw.make, summary='SAW: IVL value, sub-policy and a flat policy bootstrapped '
-                'from it'))
+                'from it', style_defaults=_ogbench_styles()))
