@@ -24,6 +24,7 @@ from aqm_mjx import config as cfg_lib
 from aqm_mjx.agent.rollout import make_rollout
 from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.evaluation import calibration
 from aqm_mjx.evaluation import protocol as proto
 from aqm_mjx.learn import fit, methods
 from aqm_mjx.mapping.build import MapConfig, build_map
@@ -36,12 +37,13 @@ PRESETS = {
     # tests and notebooks: seconds on a CPU
     'ci': dict(train='ci', map=dict(delta=0.5, max_keypoints=32, candidates=400),
                agent=dict(kappa=0.0, switch_radius=0.6), protocol=dict(episodes=2, horizon=60, envs=64)),
-    # minutes on a 2-core CPU; map and agent values measured at this scale (RESULTS.md sections 3-4)
+    # minutes on a 2-core CPU; map and agent values measured at this scale (RESULTS.md sections 3-4); the
+    # AQM row on the stall rule calibrated at 0.5% false alarms (RESULTS.md sections 9 and 13)
     'cpu': dict(train='cpu', map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
-                protocol=dict(episodes=4, envs=64)),
+                protocol=dict(episodes=4, envs=64, calibrate='stall', false_alarm=0.005)),
     # about an hour on a 2-core CPU for antmaze-large navigate with 2 seeds: 4x the data, 2.5x the updates
     'cpu-long': dict(train='cpu-long', map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
-                     protocol=dict(episodes=20, envs=64), collect_episodes=400),
+                     protocol=dict(episodes=20, envs=64, calibrate='stall', false_alarm=0.005), collect_episodes=400),
     # the paper's sizes (Appendix 10): delta 10 (its best in Figure 10, swept 10-25), OGBench's 50 episodes
     'paper': dict(train='paper', map=dict(delta=10.0), agent=dict(kappa=0.25, switch_radius=5.0),
                   protocol=dict(episodes=50, envs=1024)),
@@ -137,7 +139,9 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         ``episode_success [E]``, ``pruned [E]`` (legs overrun), ``removed [E]`` (keypoint edges cut),
         ``legs [E, MAX_LEGS, 3]`` and ``n_legs [E]`` in the
         order of ``run.episodes.table``,
-        ``keypoints`` (count), ``overflow``, ``metrics`` (last chunk's means) and ``params``.
+        ``keypoints`` (count), ``overflow``, ``metrics`` (last chunk's means) and ``params``; with
+        ``cfg.protocol.calibrate`` also ``calibration`` (the AQM row's ``kappa`` and ``patience``
+        and the ``legs`` of the calibration pass, run first on the training layout).
         ``run.episodes`` describes the episodes, ``run.learner`` the method's functions.
     """
     learner = methods.get(cfg.method).make(cfg.train, env.obs_size, env.action_size)
@@ -145,6 +149,10 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
     episodes = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=agent.plans,
                                    patience=cfg.agent.patience)
     rollout = make_rollout(env, agent, cfg.agent, episodes.steps)
+    rule = cfg.protocol.calibrate if agent.plans else 'none'
+    if rule != 'none':  # the calibration pass: no pruning, training layout, its own episodes
+        cal_episodes = proto.calibration_episodes(env, cfg.protocol)
+        aqm_rows = episodes.table.agent == 0  # the AQM row is the first agent of the table
 
     def run(key, ds: ds_io.Dataset) -> dict:
         k_train, k_map, k_eval = stage_keys(key)
@@ -157,13 +165,21 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
             count, overflow = kp.count, kp.overflow
         else:
             graph, count, overflow = None, jnp.int32(0), jnp.bool_(False)
+        inputs, cal = proto.table_inputs(episodes, k_eval), {}
+        if rule != 'none':  # CALIBRATE: the AQM row's budget from the legs of a no-pruning pass
+            c = calibration.calibrate(rollout(params, graph, proto.table_inputs(
+                cal_episodes, jax.random.fold_in(k_eval, proto.CALIBRATION_FOLD)))['legs'], cfg.protocol.false_alarm)
+            kappa, patience = calibration.budget(c, rule, cfg.agent.kappa, cfg.agent.patience)
+            inputs = inputs._replace(kappa=jnp.where(aqm_rows, kappa, inputs.kappa),
+                                     patience=jnp.where(aqm_rows, patience, inputs.patience))
+            cal = dict(calibration=dict(kappa=kappa, patience=patience, legs=c['legs']))
         # EVALUATE: every agent x layout x task x episode in one batch
-        out = rollout(params, graph, proto.table_inputs(episodes, k_eval))
+        out = rollout(params, graph, inputs)
         success = out['success'] > 0
         rates, _ = proto.success_rates(episodes, success, out['pruned'])
         return dict(success=rates, episode_success=success, pruned=out['pruned'], removed=out['removed'],
                     legs=out['legs'], n_legs=out['n_legs'], keypoints=count, overflow=overflow, metrics=metrics,
-                    params=params)
+                    params=params, **cal)
 
     run.episodes, run.learner = episodes, learner
     return run

@@ -23,7 +23,7 @@ from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, report
 from aqm_mjx.evaluation.protocol import plan_episodes
-from aqm_mjx.evaluation.evaluate import device_mesh, evaluate, make_program, put_global
+from aqm_mjx.evaluation.evaluate import calibration_pass, device_mesh, evaluate, make_program, put_global
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import PRESETS, RunConfig, make_run, stage_keys, summary
@@ -81,13 +81,16 @@ def preset_for(trained: fit.Trained) -> str:
 # ------------------------------------------------------------------------------ map + evaluation
 def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig, variants: dict):
     """The compiled evaluation chunk for ``trained`` from ``programs`` (filled on first use), shared by
-    checkpoints whose method and configs agree up to the seed: parameters are arguments, not
-    constants, so seeds of one method compile once."""
+    checkpoints whose method and configs agree up to the seed, and by the calibration pass and the
+    evaluation: parameters, kappa, patience, layouts and episodes are arguments, not constants, so
+    seeds of one method compile once, whatever their calibrated budgets."""
     if programs is None:
         return None
     run_cfg = cfg.to_dict()
+    agent_cfg = {k: v for k, v in run_cfg['agent'].items() if k not in ('kappa', 'patience')}
+    chunk = {k: run_cfg['protocol'][k] for k in ('horizon', 'backend', 'workers')}
     sig = json.dumps([trained.method, dataclasses.replace(trained.config, seed=0).to_dict(), run_cfg['map'],
-                      run_cfg['agent'], run_cfg['protocol'], sorted(variants)], sort_keys=True)
+                      agent_cfg, chunk], sort_keys=True)
     if sig not in programs:
         steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans,
                               patience=cfg.agent.patience).steps
@@ -97,9 +100,12 @@ def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig
 
 
 def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, variants: dict, k_map, k_eval,
-                     out: str, info: dict, log=print, programs: Optional[dict] = None):
+                     out: str, info: dict, log=print, programs: Optional[dict] = None, train_layout=None):
     """The map from ``observations`` and the protocol for a trained method, then the report in
-    ``out`` (``results.json`` and pictures). ``programs``: a dict that keeps compiled evaluation
+    ``out`` (``results.json`` and pictures). With ``cfg.protocol.calibrate`` ('fixed' or 'stall')
+    a calibration pass on the training layout (``train_layout``, default the maze's) sets the AQM
+    row's budget first (:func:`~aqm_mjx.evaluation.evaluate.calibration_pass`; recorded as
+    ``calibration`` in ``results.json``). ``programs``: a dict that keeps compiled evaluation
     chunks across calls (several seeds of a method). Returns ``(Results, report dict)``."""
     agent = trained.agent
     if agent.plans:
@@ -115,16 +121,42 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
         f'keypoints at delta {cfg.map.delta} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
         f'{len(cfg.protocol.tasks) or env.num_tasks} tasks x {cfg.protocol.episodes} episodes on '
         f'{jax.device_count()} device(s)')
-    res = evaluate(env, agent, graph, cfg.agent, cfg.protocol, variants, key=k_eval,
-                   program=_program(programs, trained, env, cfg, variants))
+    owned = programs is None  # the calibration pass and the evaluation share one compiled chunk
+    programs = {} if owned else programs
+    program = _program(programs, trained, env, cfg, variants)
+    try:
+        agent_cfg, cal = cfg.agent, None
+        if agent.plans and cfg.protocol.calibrate != 'none':
+            cal = calibration_pass(env, agent, graph, cfg.agent, cfg.protocol, k_eval, layout=train_layout,
+                                   program=program)
+            agent_cfg = dataclasses.replace(cfg.agent, kappa=cal['kappa'], patience=cal['patience'])
+            log(calibration_line(cal, cfg.agent))
+        res = evaluate(env, agent, graph, agent_cfg, cfg.protocol, variants, key=k_eval, program=program)
+    finally:
+        if owned:
+            for p in programs.values():
+                if hasattr(p, 'close'):
+                    p.close()
     report.print_summary(res, log)
     info = dict(info, method=trained.method, step=trained.step, train_preset=trained.config.preset,
                 keypoints=m['keypoints'], keypoint_overflow=m['overflow'], map_s=round(m['seconds'], 2),
-                config=cfg.to_dict())
+                config=cfg.to_dict(), **({} if cal is None else dict(calibration=cal)))
     rep = report.write(res, graph, env.layout, variants, out, env.name, cfg.protocol.episodes, info,
                        name=os.path.basename(os.path.normpath(info.get('checkpoint', out))))
     log(f'wrote {out}/results.json and pictures')
     return res, rep
+
+
+def calibration_line(cal: dict, agent_cfg) -> str:
+    """One line on what a calibration pass set (or why it set nothing)."""
+    where = f'calibration pass: {cal["episodes"]} episodes without pruning, {cal["legs"]} legs completed'
+    if not cal['calibrated']:
+        return (f'warning: {where}: nothing to calibrate from; AQM keeps kappa {agent_cfg.kappa:g}, '
+                f'patience {agent_cfg.patience:g}')
+    q = f'{cal["false_alarm"]:.1%} false alarms'
+    if cal['rule'] == 'stall':
+        return f'{where}: AQM row on the stall rule, patience {cal["patience"]:g} steps ({q})'
+    return f'{where}: AQM row on the fixed rule, kappa {cal["kappa"]:g} ({q})'
 
 
 def prepare_evaluation(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], shift: str, overrides):
@@ -318,8 +350,12 @@ def run_one_program(cfg: RunConfig, data: dict, seeds: int, log=print) -> dict:
     first = list(run.episodes.variants)[0]
     for i, s in enumerate(per_seed):
         head = run.episodes.agents[0]
+        cal = out.get('calibration')
+        budget = '' if cal is None else (f', calibrated patience {float(cal["patience"][i]):g}'
+                                         if cfg.protocol.calibrate == 'stall' else
+                                         f', calibrated kappa {float(cal["kappa"][i]):g}')
         log(f'seed {seed + i}: {cfg.method} ({head}) mean success {100 * s[head][first]["mean"]:.0f}%, '
-            f'{int(out["keypoints"][i])} keypoints')
+            f'{int(out["keypoints"][i])} keypoints{budget}')
     log(f'one program, {seeds} seeds: compile {t_compile:.1f} s, run {t_run:.1f} s')
     return dict(env=env.name, seeds=[seed + i for i in range(seeds)], config=cfg.to_dict(), success=per_seed,
                 keypoints=[int(k) for k in out['keypoints']], compile_s=round(t_compile, 2), run_s=round(t_run, 2))

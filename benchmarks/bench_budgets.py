@@ -10,6 +10,8 @@ For every checkpoint (a seed), with one map (``stage_keys(PRNGKey(--seed))``, as
    completes is traversable; :func:`aqm_mjx.evaluation.calibration.calibrate` turns their (d, steps,
    longest stall) into the fixed rule's ``kappa`` and the stall rule's ``patience`` that would have
    cut a fraction ``--false-alarm`` of them.
+   (The same pass as ``protocol.calibrate`` runs before any evaluation; this script keeps its own
+   to put several rates and both rules side by side.)
 2. **Evaluation** on the same episodes for every row: the paper's fixed rule at the preset's kappa
    (``aqm``), the fixed rule at the calibrated kappa, the stall rule at the calibrated patience, no
    pruning and the flat policy (unless ``--no-flat``); layouts: the training layout and the
@@ -36,6 +38,7 @@ import numpy as np
 from aqm_mjx import files
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import calibration, evaluate, stats
+from aqm_mjx.evaluation import protocol
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import stage_keys
@@ -74,10 +77,12 @@ def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> di
         variants = {k: shifts.variant(env.maze, k) for k in layouts}
     # 1. calibration: no pruning, training layout, other episodes
     t0 = time.perf_counter()
-    cal_proto = dataclasses.replace(cfg.protocol, episodes=a.calibration_episodes, ablations=())
+    # (the episodes of protocol.calibrate's pass: protocol.calibration_protocol, fold CALIBRATION_FOLD)
+    cal_proto = protocol.calibration_protocol(dataclasses.replace(cfg.protocol,
+                                                                  calibration_episodes=a.calibration_episodes))
     cal = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, kappa=float('inf'), patience=0.0),
                             cal_proto, {train_layout: shifts.variant(env.maze, train_layout)},
-                            key=jax.random.fold_in(k_eval, 1), progress=a.progress)
+                            key=jax.random.fold_in(k_eval, protocol.CALIBRATION_FOLD), progress=a.progress)
     legs = calibration.legs_of(cal, 'aqm', train_layout)
     cals = [{k: np.asarray(v).tolist() for k, v in calibration.calibrate(legs, q).items()} for q in a.false_alarm]
     if not cals[0]['legs']:

@@ -187,6 +187,32 @@ def test_calibration_by_hand():
         assert int(e['legs']) == 0 and np.isnan(float(e['kappa'])) and np.isnan(float(e['patience']))
 
 
+def test_calibrated_budget_by_hand():
+    """The AQM row's budget from a calibration: the fixed rule's kappa rounded to 0.01 (patience 0),
+    the stall rule's patience rounded to a step (kappa kept, 1 where it is inf); without a single
+    leg (NaN) or with rule 'none', the configured budget; the same under jit; bad settings named."""
+    cal = dict(kappa=jnp.float32(0.456), patience=jnp.float32(12.4))
+    assert np.allclose(calibration.budget(cal, 'fixed', 1.0, 7.0), (0.46, 0.0))
+    assert np.allclose(calibration.budget(cal, 'stall', 1.0, 0.0), (1.0, 12.0))
+    assert np.allclose(calibration.budget(cal, 'stall', np.inf, 0.0), (1.0, 12.0))  # inf would unbudget the legs
+    assert np.allclose(calibration.budget(cal, 'none', 0.5, 3.0), (0.5, 3.0))
+    nan = dict(kappa=jnp.float32(np.nan), patience=jnp.float32(np.nan))
+    for rule in ('fixed', 'stall'):
+        assert np.allclose(calibration.budget(nan, rule, 0.5, 3.0), (0.5, 3.0))
+    jitted = jax.jit(lambda c: calibration.budget(c, 'stall', 2.0, 0.0))(dict(kappa=jnp.float32(3.0),
+                                                                          patience=jnp.float32(40.6)))
+    assert np.allclose(jitted, (2.0, 41.0))
+    with pytest.raises(ValueError, match='unknown calibration rule'):
+        calibration.budget(cal, 'median', 1.0, 0.0)
+    for bad, match in ((dict(calibrate='median'), 'calibrate'), (dict(false_alarm=0.0), 'false_alarm'),
+                       (dict(false_alarm=1.0), 'false_alarm'), (dict(calibration_episodes=0), 'calibration_episodes')):
+        with pytest.raises(ValueError, match=match):
+            protocol.ProtocolConfig(**bad)
+    cal_proto = protocol.calibration_protocol(protocol.ProtocolConfig(episodes=20, ablations=('flat',), tasks=(2, 3),
+                                                                      calibrate='stall', calibration_episodes=4))
+    assert (cal_proto.episodes, cal_proto.ablations, cal_proto.tasks, cal_proto.calibrate) == (4, (), (2, 3), 'none')
+
+
 def test_success_rates_by_hand():
     """The one aggregation (on device): 2 agents x 1 layout x 2 tasks x 2 episodes."""
     env = envs.make('pointmaze-medium')
@@ -322,6 +348,20 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
             assert row['legs'] >= 1 and q['q50'] <= q['q90'] <= q['q95'] <= q['q99'], (a, v)
             assert ('calibrated' in row) == (a == 'no-pruning')
     assert ('legs of no-pruning / base' in printed) == ('base' in res['legs']['no-pruning'])
+    # protocol.calibrate: a no-pruning pass on other episodes sets the AQM row's stall patience first,
+    # which is the same as giving that patience by hand
+    one = ['evaluate', '--checkpoint', str(out), '--episodes', '1', '--horizon', '60', '--delta', '1',
+           '--max-keypoints', '16', '--envs', '32', '--ablations', 'no-pruning']
+    assert cli.main(one + ['--set', 'protocol.calibrate=stall', '--set', 'protocol.false_alarm=0.2',
+                           '--out', str(tmp_path / 'cal')]) == 0
+    cal = json.loads((tmp_path / 'cal' / 'results.json').read_text())
+    c = cal['calibration']
+    assert c['rule'] == 'stall' and c['calibrated'] and c['episodes'] == 4 * 5 and c['legs'] >= 1
+    assert c['patience'] >= 1 and c['patience'] == round(c['patience'])
+    assert f'AQM row on the stall rule, patience {c["patience"]:g} steps' in capsys.readouterr().out
+    assert cli.main(one + ['--set', f'agent.patience={c["patience"]:g}', '--out', str(tmp_path / 'hand')]) == 0
+    hand = json.loads((tmp_path / 'hand' / 'results.json').read_text())
+    assert 'calibration' not in hand and hand['summary'] == cal['summary']
     # clear errors
     assert cli.main(['evaluate', '--checkpoint', str(out), '--shift', 'close-1-1', '--out', str(ev)]) == 2
     assert "unknown shift 'close-1-1'" in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """The whole run as one jitted program equals the step-by-step path; seeds vmap in one compile."""
 
+import dataclasses
 import json
 
 import jax
@@ -9,7 +10,7 @@ import pytest
 from aqm_mjx import envs, pipeline
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
-from aqm_mjx.evaluation import evaluate
+from aqm_mjx.evaluation import evaluate, protocol
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import build_map
 
@@ -26,11 +27,13 @@ def assert_params_close(a, b):
 
 
 def tiny_config():
-    # the ci preset: kappa 0 and a switch radius that the start states fall within, so budgets are
-    # overrun and edges pruned
+    # the ci preset with a switch radius that the start states fall within; the AQM row's kappa is
+    # calibrated at a 50% false-alarm rate (the median of steps / d, minus 1), so budgets are overrun,
+    # edges pruned, and both paths calibrate
     return pipeline.RunConfig.preset('ci', env='pointmaze-medium').with_overrides(
         ['train.steps=100', 'train.updates_per_call=50', 'train.log_every=50', 'train.checkpoint_every=50',
-         'protocol.tasks=1,2', 'protocol.ablations=flat'])
+         'protocol.tasks=1,2', 'protocol.ablations=flat', 'protocol.calibrate=fixed', 'protocol.false_alarm=0.5',
+         'protocol.calibration_episodes=3'])
 
 
 @pytest.fixture(scope='module')
@@ -57,13 +60,26 @@ def test_one_program_equals_the_step_by_step_path(tmp_path, one_program):
         assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
     agent = loaded.agent
     graph, kp = build_map(agent, ds.observations, cfg.map, k_map)
-    res = evaluate.evaluate(env, agent, graph, cfg.agent, cfg.with_overrides(['protocol.envs=5']).protocol,
-                            progress=False, key=k_eval)
+    # the calibration by hand: the no-pruning agent on 3 other episodes per task, median of steps / d
+    cal_res = evaluate.evaluate(env, agent, graph, dataclasses.replace(cfg.agent, kappa=np.inf),
+                                protocol.calibration_protocol(cfg.protocol), progress=False,
+                                key=jax.random.fold_in(k_eval, protocol.CALIBRATION_FOLD))
+    assert len(cal_res.table.task) == 2 * 3 and cal_res.agents == ['aqm'] and cal_res.pruned.sum() == 0
+    legs = cal_res.legs.reshape(-1, 3)
+    legs = legs[(legs[:, 1] >= 0) & (legs[:, 0] > 0)]
+    kappa = max(round(float(np.quantile(legs[:, 1] / legs[:, 0], 0.5)) - 1, 2), 0.0)
+    cal = evaluate.calibration_pass(env, agent, graph, cfg.agent, cfg.protocol, k_eval, progress=False)
+    assert cal['calibrated'] and cal['legs'] == len(legs) >= 2 and cal['patience'] == 0
+    assert cal['kappa'] == pytest.approx(kappa, abs=1e-6)
+    assert float(out['calibration']['kappa']) == pytest.approx(kappa, abs=1e-6)
+    assert int(out['calibration']['legs']) == len(legs)
+    res = evaluate.evaluate(env, agent, graph, dataclasses.replace(cfg.agent, kappa=cal['kappa']),
+                            cfg.with_overrides(['protocol.envs=5']).protocol, progress=False, key=k_eval)
     assert int(out['keypoints']) == int(kp.count) >= 2
     assert_params_close(out['params'], trained.params)
     np.testing.assert_array_equal(out['episode_success'], res.success)
     np.testing.assert_array_equal(out['pruned'], res.pruned)
-    assert out['pruned'].sum() > 0  # kappa 0: budgets overrun, so the comparison covers pruning
+    assert out['pruned'].sum() > 0  # the median kappa: budgets overrun, so the comparison covers pruning
     assert pipeline.summary(run, out) == {a: {v: {k: r for k, r in row.items() if k != 'pruned_mean'}
                                               for v, row in rows.items()} for a, rows in res.summary.items()}
     assert set(out['metrics']) >= {'qrl/loss', 'policy/main_loss'}
@@ -154,7 +170,7 @@ sys.path.insert(0, os.path.dirname(sys.argv[1]))
 from test_pipeline import tiny_config
 from aqm_mjx import envs, pipeline, run as host
 from aqm_mjx.data import dataset as ds_io, synthetic
-from aqm_mjx.evaluation import evaluate
+from aqm_mjx.evaluation import evaluate, protocol
 assert jax.device_count() == 2
 run = pipeline.make_run(tiny_config(), envs.make('pointmaze-medium'))
 ds = ds_io.to_device(synthetic.point_walks())

@@ -17,15 +17,20 @@ finishes (it got stuck, or the episode ended) are not in the log, so the rate is
     legs = calibration.legs_of(results, agent='no-pruning', layout='base')
     calibration.calibrate(legs, false_alarm=0.02)   # {'kappa': ..., 'patience': ..., 'legs': n, ...}
 
-:func:`calibrate` is written in ``jax.numpy``: it also runs inside a jitted program on the
-``legs [E, MAX_LEGS, 3]`` output of a rollout.
+:func:`calibrate` and :func:`budget` (the AQM row's kappa or patience from a calibration, rounded)
+are written in ``jax.numpy``: they also run inside a jitted program on the ``legs [E, MAX_LEGS, 3]``
+output of a rollout. ``ProtocolConfig.calibrate`` ('fixed' or 'stall') makes every evaluation path do
+this before it evaluates (:func:`aqm_mjx.evaluation.evaluate.calibration_pass` on the host,
+:func:`aqm_mjx.pipeline.make_run` inside the one-program run).
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from aqm_mjx.evaluation.protocol import CALIBRATE as RULES
 from aqm_mjx.evaluation.protocol import NO_PRUNING
 
 QUANTILES = (0.5, 0.9, 0.95, 0.99)
@@ -67,6 +72,30 @@ def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
     r_q, s_q = jnp.nanquantile(ratio, qs), jnp.nanquantile(stall, qs)
     return dict(kappa=jnp.maximum(r_q[-1] - 1.0, 0.0), patience=jnp.maximum(s_q[-1], 1.0),
                 legs=jnp.sum(ok).astype(jnp.int32), ratio_q=r_q[:-1], stall_q=s_q[:-1])
+
+
+def budget(cal: dict, rule: str, kappa, patience) -> tuple[jax.Array, jax.Array]:
+    """``(kappa, patience)`` of the AQM agent after calibration ``cal`` (from :func:`calibrate`).
+
+    ``rule``: ``'fixed'``: the calibrated kappa rounded to 0.01, patience 0 (the paper's rule);
+    ``'stall'``: the calibrated patience rounded to a whole step, ``kappa`` kept (1 where it is inf,
+    which would unbudget the legs); ``'none'``, or a calibration without a single leg (NaN): the given
+    ``kappa`` and ``patience``. Jittable (``rule`` static); the same arithmetic on the host and
+    inside the one-program run.
+    """
+    if rule not in RULES:
+        raise ValueError(f'unknown calibration rule {rule!r}; expected one of {", ".join(RULES)}')
+    kappa, patience = jnp.float32(kappa), jnp.float32(patience)
+    if rule == 'fixed':
+        k = jnp.round(cal['kappa'], 2)
+        ok = jnp.isfinite(k)
+        return jnp.where(ok, k, kappa), jnp.where(ok, 0.0, patience).astype(jnp.float32)
+    if rule == 'stall':
+        p = jnp.round(cal['patience'])
+        ok = jnp.isfinite(p)
+        return (jnp.where(ok & ~jnp.isfinite(kappa), 1.0, kappa).astype(jnp.float32),
+                jnp.where(ok, p, patience).astype(jnp.float32))
+    return kappa, patience
 
 
 def legs_of(results, agent: str, layout=None) -> np.ndarray:

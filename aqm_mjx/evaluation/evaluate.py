@@ -12,6 +12,8 @@ the chunk size or the number of devices (episode keys depend on the episode alon
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from typing import NamedTuple, Optional
 
@@ -21,6 +23,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from aqm_mjx.agent.rollout import make_host_rollout, make_rollout
 from aqm_mjx.agent.rules import MAX_LEGS, AgentConfig
+from aqm_mjx.evaluation import calibration
 from aqm_mjx.evaluation import protocol as proto
 from aqm_mjx.interface import Agent
 from aqm_mjx.mapping.graph import Graph
@@ -201,3 +204,37 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     summary = proto.format_summary(rates, eps.agents, names, eps.task_ids, prunes)
     return Results(eps.agents, names, eps.task_ids, table, success, pruned, summary, traces, timing, legs, n_legs,
                    removed)
+
+
+def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.ProtocolConfig,
+                     key: jax.Array, layout=None, mesh: Optional[Mesh] = None, progress: bool = True,
+                     program=None) -> dict:
+    """The budget calibration that ``protocol.calibrate`` asks for before an evaluation.
+
+    The agent without pruning on ``layout`` (default the maze's: the training layout),
+    ``protocol.calibration_episodes`` per task, on the episodes of ``fold_in(key,
+    CALIBRATION_FOLD)`` (``key``: the evaluation's, whose episodes these are not); its completed
+    legs give the AQM row's budget at ``protocol.false_alarm``
+    (:func:`~aqm_mjx.evaluation.calibration.calibrate`, then
+    :func:`~aqm_mjx.evaluation.calibration.budget`).
+
+    Returns:
+        ``{'rule', 'false_alarm', 'episodes', 'legs', 'calibrated', 'kappa', 'patience', 'ratio_q',
+        'stall_q'}``: ``kappa`` and ``patience`` are the AQM row's (``cfg``'s when ``calibrated`` is
+        False: no leg was completed, or ``rule`` is 'none'); ``ratio_q`` and ``stall_q`` the
+        quantiles :data:`~aqm_mjx.evaluation.calibration.QUANTILES` of steps / d and of the longest
+        stall; plain Python values.
+    """
+    rule = protocol.calibrate
+    if rule == 'none' or not agent.plans:
+        return dict(rule='none', false_alarm=protocol.false_alarm, episodes=0, legs=0, calibrated=False,
+                    kappa=float(cfg.kappa), patience=float(cfg.patience), ratio_q=[], stall_q=[])
+    variants = None if layout is None else {'train': layout}
+    res = evaluate(env, agent, graph, dataclasses.replace(cfg, kappa=math.inf, patience=0.0),
+                   proto.calibration_protocol(protocol), variants,
+                   key=jax.random.fold_in(key, proto.CALIBRATION_FOLD), mesh=mesh, progress=progress, program=program)
+    c = calibration.calibrate(res.legs, protocol.false_alarm)
+    kappa, patience = calibration.budget(c, rule, cfg.kappa, cfg.patience)
+    return dict(rule=rule, false_alarm=protocol.false_alarm, episodes=len(res.table.task), legs=int(c['legs']),
+                calibrated=bool(int(c['legs']) > 0), kappa=float(kappa), patience=float(patience),
+                ratio_q=np.asarray(c['ratio_q']).tolist(), stall_q=np.asarray(c['stall_q']).tolist())

@@ -25,6 +25,8 @@ from aqm_mjx.envs import mazes
 
 AQM, FLAT, NO_PRUNING = 'aqm', 'flat', 'no-pruning'
 BACKENDS = ('mjx', 'ogbench')
+CALIBRATE = ('none', 'fixed', 'stall')  # ProtocolConfig.calibrate: which budget a calibration pass sets
+CALIBRATION_FOLD = 1  # the calibration pass's episodes: fold_in(evaluation key, 1), apart from the evaluation's
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,10 +44,20 @@ class ProtocolConfig:
                           "'ogbench' (OGBench's own MuJoCo environments stepped on the host, the agent one jitted "
                           "call per control step)", choices=BACKENDS)
     workers: int = option(0, "backend 'ogbench': processes that step the environments (0: this process)")
+    calibrate: str = option('none', "the AQM row's budget in the controller's own time: 'none' (agent.kappa and "
+                            "agent.patience as set), 'fixed' (kappa) or 'stall' (patience) from a no-pruning pass on "
+                            "the training layout before the evaluation", choices=CALIBRATE)
+    false_alarm: float = option(0.005, 'calibrate: the fraction of traversable legs of the calibration pass that '
+                                'the calibrated budget would cut')
+    calibration_episodes: int = option(4, 'calibrate: episodes per task of the calibration pass (other episodes '
+                                       "than the evaluation's)")
 
     def __post_init__(self):
         cfg_lib.check_types(self)
-        cfg_lib.check_positive_int(self, 'episodes', 'envs')
+        cfg_lib.check_positive_int(self, 'episodes', 'envs', 'calibration_episodes')
+        cfg_lib.check_choice(type(self).__name__, 'calibrate', self.calibrate, CALIBRATE)
+        if not 0.0 < self.false_alarm < 1.0:
+            raise ValueError(f'ProtocolConfig.false_alarm must be in (0, 1); got {self.false_alarm!r}')
         if self.backend not in BACKENDS:
             raise ValueError(f'unknown ProtocolConfig.backend {self.backend!r}; expected one of {", ".join(BACKENDS)}')
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
@@ -162,6 +174,20 @@ def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optiona
     specs = agent_specs(kappa, protocol.ablations, plans, patience)
     table = episode_table(specs, len(grids), task_ids, protocol.episodes)
     return Episodes(variants, grids, task_ids, specs, table, int(protocol.horizon or env.max_episode_steps))
+
+
+def calibration_protocol(protocol: ProtocolConfig) -> ProtocolConfig:
+    """The protocol of the calibration pass before an evaluation (``protocol.calibrate``): the agent
+    alone (run it without pruning), ``protocol.calibration_episodes`` per task, the same tasks,
+    horizon and backend; run it on ``fold_in(key, CALIBRATION_FOLD)`` of the evaluation's key, so
+    that its episodes are not the evaluated ones."""
+    return dataclasses.replace(protocol, episodes=protocol.calibration_episodes, ablations=(), calibrate='none')
+
+
+def calibration_episodes(env, protocol: ProtocolConfig, layout=None) -> Episodes:
+    """The episode table of the calibration pass: :func:`calibration_protocol`, no pruning, on
+    ``layout`` (default the maze's, the training layout)."""
+    return plan_episodes(env, calibration_protocol(protocol), math.inf, None if layout is None else {'train': layout})
 
 
 def table_inputs(episodes: Episodes, key: jax.Array, rows=None) -> EpisodeInputs:
