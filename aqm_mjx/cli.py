@@ -451,7 +451,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument('--preset', default='cpu', choices=presets, help='every default of each method\'s run')
     k.add_argument('--set', action='append', metavar='[METHOD:]SECTION.FIELD=VALUE',
                    help='override a field for every method (--set steps=4000 --set protocol.episodes=10), or '
-                        'for one (--set gcivl:actor_p_trajectory=0.5); repeatable')
+                        'for one (--set gciql:alpha=0.1); repeatable')
     k.add_argument('--dataset', default=None, help='an OGBench-format .npz instead of collecting')
     k.add_argument('--style', default='navigate', choices=['navigate', 'stitch', 'explore'],
                    help='the dataset to collect (taken from the file name with --dataset)')

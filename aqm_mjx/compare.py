@@ -43,8 +43,8 @@ def method_configs(env_name: str, names: Sequence[str], preset: str, overrides: 
     """``{method: RunConfig}`` for a comparison, every override checked before any work.
 
     ``overrides`` are ``section.field=value`` pairs (``field=value`` where the field is unique), given
-    to every method; ``METHOD:section.field=value`` goes to that method alone (OGBench's stitch
-    settings, for instance: ``gcivl:actor_p_trajectory=0.5``). A shared override that a method's
+    to every method; ``METHOD:section.field=value`` goes to that method alone (a setting of
+    one method, for instance: ``gciql:alpha=0.1``). A shared override that a method's
     config lacks is an error naming the method; scope it instead.
     """
     names = list(names)
