@@ -211,6 +211,9 @@ def test_calibrated_budget_by_hand():
     cal_proto = protocol.calibration_protocol(protocol.ProtocolConfig(episodes=20, ablations=('flat',), tasks=(2, 3),
                                                                       calibrate='stall', calibration_episodes=4))
     assert (cal_proto.episodes, cal_proto.ablations, cal_proto.tasks, cal_proto.calibrate) == (4, (), (2, 3), 'none')
+    with pytest.raises(ValueError, match="calibrate is 'none'"):  # before any episode is run
+        evaluate.calibration_pass(None, types.SimpleNamespace(plans=True), None, None, protocol.ProtocolConfig(),
+                                  jax.random.PRNGKey(0))
 
 
 def test_success_rates_by_hand():

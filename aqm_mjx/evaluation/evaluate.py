@@ -221,14 +221,16 @@ def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol
     Returns:
         ``{'rule', 'false_alarm', 'episodes', 'legs', 'calibrated', 'kappa', 'patience', 'ratio_q',
         'stall_q'}``: ``kappa`` and ``patience`` are the AQM row's (``cfg``'s when ``calibrated`` is
-        False: no leg was completed, or ``rule`` is 'none'); ``ratio_q`` and ``stall_q`` the
-        quantiles :data:`~aqm_mjx.evaluation.calibration.QUANTILES` of steps / d and of the longest
-        stall; plain Python values.
+        False: no leg was completed); ``ratio_q`` and ``stall_q`` the quantiles
+        :data:`~aqm_mjx.evaluation.calibration.QUANTILES` of steps / d and of the longest stall;
+        plain Python values.
+    Raises:
+        ValueError: ``protocol.calibrate`` is 'none', or the agent has no quasimetric (no budgets).
     """
     rule = protocol.calibrate
     if rule == 'none' or not agent.plans:
-        return dict(rule='none', false_alarm=protocol.false_alarm, episodes=0, legs=0, calibrated=False,
-                    kappa=float(cfg.kappa), patience=float(cfg.patience), ratio_q=[], stall_q=[])
+        raise ValueError('calibration_pass: nothing to calibrate ' + (
+            "(protocol.calibrate is 'none')" if rule == 'none' else '(the agent has no quasimetric, so no budgets)'))
     variants = None if layout is None else {'train': layout}
     res = evaluate(env, agent, graph, dataclasses.replace(cfg, kappa=math.inf, patience=0.0),
                    proto.calibration_protocol(protocol), variants,

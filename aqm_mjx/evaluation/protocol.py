@@ -184,10 +184,10 @@ def calibration_protocol(protocol: ProtocolConfig) -> ProtocolConfig:
     return dataclasses.replace(protocol, episodes=protocol.calibration_episodes, ablations=(), calibrate='none')
 
 
-def calibration_episodes(env, protocol: ProtocolConfig, layout=None) -> Episodes:
-    """The episode table of the calibration pass: :func:`calibration_protocol`, no pruning, on
-    ``layout`` (default the maze's, the training layout)."""
-    return plan_episodes(env, calibration_protocol(protocol), math.inf, None if layout is None else {'train': layout})
+def calibration_episodes(env, protocol: ProtocolConfig) -> Episodes:
+    """The episode table of the calibration pass: :func:`calibration_protocol`, no pruning, on the
+    maze's layout (the training layout)."""
+    return plan_episodes(env, calibration_protocol(protocol), math.inf)
 
 
 def table_inputs(episodes: Episodes, key: jax.Array, rows=None) -> EpisodeInputs:
