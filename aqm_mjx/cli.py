@@ -15,12 +15,15 @@ import os
 import sys
 import time
 
+# Loading a cached CPU executable makes XLA log E-level "Target machine feature +prefer-no-gather is
+# not supported" lines listing ~150 CPU features (tuning flags differ, the code runs). Quiet XLA's C++
+# log unless the user chose a level. XLA reads the level once, when jaxlib loads, and building the
+# parser imports the configs (and jax), so it is set here, before anything else. Python-side errors
+# are unaffected.
+os.environ.setdefault('TF_CPP_MIN_LOG_LEVEL', '3')
+
 
 def _enable_compile_cache():
-    # Loading a cached CPU executable makes XLA log an E-level "machine type ... doesn't match" line
-    # listing ~150 CPU features (tuning flags differ, the code runs). Quiet XLA's C++ log unless the
-    # user chose a level; Python-side errors are unaffected.
-    os.environ.setdefault('TF_CPP_MIN_LOG_LEVEL', '3')
     import jax  # pylint: disable=import-outside-toplevel
 
     jax.config.update('jax_compilation_cache_dir', os.path.expanduser('~/.cache/aqm_mjx/jax'))

@@ -24,6 +24,7 @@ import os
 import platform
 import time
 
+os.environ.setdefault('TF_CPP_MIN_LOG_LEVEL', '3')  # before jaxlib loads: no XLA lines on cached executables (see cli.py)
 import jax
 import jax.numpy as jnp
 import mujoco

@@ -1,7 +1,10 @@
 """The package imports silently and the CLI's cheap commands work and fail clearly."""
 
+import os
 import subprocess
 import sys
+
+import pytest
 
 from aqm_mjx import cli
 
@@ -97,3 +100,35 @@ def test_cpu_long_preset_scales_the_cpu_run_for_every_method():
     assert cli._collect_episodes(parser.parse_args(['run', '--preset', 'cpu-long'])) == 400
     assert cli._collect_episodes(parser.parse_args(['compare', '--preset', 'cpu-long', '--collect-episodes', '7'])) == 7
     assert cli._collect_episodes(parser.parse_args(['run'])) == 100
+
+
+_CACHED_PROGRAM = '''
+import sys
+if sys.argv[1] == 'cli':
+    from aqm_mjx import cli
+    cli.build_parser()          # imports the configs, and jax, as every command does
+    cli._enable_compile_cache()
+import jax, jax.numpy as jnp
+jax.config.update('jax_compilation_cache_dir', sys.argv[2])
+jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.0)
+f = jax.jit(lambda x, i: (jnp.sin(x) @ x.T)[i].sum() + x.at[i].add(1.0).sum())
+print(float(f(jnp.ones((16, 16)), jnp.arange(6) % 5)))
+'''
+
+
+def test_cached_executables_load_without_xla_log_lines(tmp_path):
+    """A second run loads the program from the compile cache; XLA logs an E-level line per CPU
+    tuning flag it "does not support" when it does. The CLI quiets that log before jaxlib loads."""
+    def twice(mode):
+        cache = tmp_path / mode
+        env = {k: v for k, v in os.environ.items() if k != 'TF_CPP_MIN_LOG_LEVEL'}
+        runs = [subprocess.run([sys.executable, '-c', _CACHED_PROGRAM, mode, str(cache)], env=env,
+                               capture_output=True, text=True, timeout=120) for _ in range(2)]
+        assert all(r.returncode == 0 for r in runs), runs[-1].stderr[-2000:]
+        assert runs[0].stdout == runs[1].stdout
+        assert any(cache.iterdir()), 'nothing was cached'
+        return runs[1].stderr
+
+    if 'cpu_aot_loader' not in twice('plain'):
+        pytest.skip('this XLA does not log when it loads a cached executable')
+    assert 'cpu_aot_loader' not in twice('cli')
