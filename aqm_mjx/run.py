@@ -137,12 +137,13 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
             for p in programs.values():
                 if hasattr(p, 'close'):
                     p.close()
-    report.print_summary(res, log)
+    report.print_summary(res, log, cfg.protocol.false_alarm)
     info = dict(info, method=trained.method, step=trained.step, train_preset=trained.config.preset,
                 keypoints=m['keypoints'], keypoint_overflow=m['overflow'], map_s=round(m['seconds'], 2),
                 config=cfg.to_dict(), **({} if cal is None else dict(calibration=cal)))
     rep = report.write(res, graph, env.layout, variants, out, env.name, cfg.protocol.episodes, info,
-                       name=os.path.basename(os.path.normpath(info.get('checkpoint', out))))
+                       name=os.path.basename(os.path.normpath(info.get('checkpoint', out))),
+                       false_alarm=cfg.protocol.false_alarm)
     log(f'wrote {out}/results.json and pictures')
     return res, rep
 

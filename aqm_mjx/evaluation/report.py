@@ -14,8 +14,10 @@ from aqm_mjx.evaluation.evaluate import Results
 from aqm_mjx.mapping.graph import Graph, edge_list
 
 
-def print_summary(res: Results, log=print) -> None:
-    """One line per agent and layout: success per task, the mean, and mean edges pruned."""
+def print_summary(res: Results, log=print, false_alarm: float = 0.005) -> None:
+    """One line per agent and layout: success per task, the mean, and mean edges pruned; then, per
+    layout, the no-pruning row's legs and the budgets that would cut ``false_alarm`` of them (pass
+    ``ProtocolConfig.false_alarm``; the default is its default)."""
     cols = [f'task_{t}' for t in res.tasks] + ['mean', 'pruned_mean']
     width = max(len(a) for a in res.agents) + max(len(v) for v in res.variants) + 3
     log(f'{"agent / layout":<{width}}' + ''.join(f'{c.replace("_mean", ""):>9}' for c in cols))
@@ -24,20 +26,20 @@ def print_summary(res: Results, log=print) -> None:
             row = res.summary[a][v]
             cells = [f'{100 * row[c]:8.0f}%' for c in cols[:-1]] + [f'{row["pruned_mean"]:9.2f}']
             log(f'{a + " / " + v:<{width}}' + ''.join(cells))
-    legs = calibration.report(res)
+    legs = calibration.report(res, false_alarm)
     for v, row in legs.get(calibration.NO_PRUNING, {}).items():
         c = row['calibrated']
         log(f'legs of no-pruning / {v}: {row["legs"]} completed, steps/d median {row["steps_per_d"]["q50"]:.2f}, '
             f'q95 {row["steps_per_d"]["q95"]:.2f}; longest stall q95 {row["longest_stall"]["q95"]:.0f}. Budgets that '
-            f'cut {100 * c["false_alarm"]:.0f}% of them: agent.kappa={c["kappa"]:.2f} (fixed rule) or '
+            f'cut {100 * c["false_alarm"]:g}% of them: agent.kappa={c["kappa"]:.2f} (fixed rule) or '
             f'agent.patience={c["patience"]:.0f} (stall rule)')
 
 
 def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str, env_name: str, episodes: int,
-          info: dict, name: Optional[str] = None) -> dict:
+          info: dict, name: Optional[str] = None, false_alarm: float = 0.005) -> dict:
     """Write ``out/results.json``, ``success.png``, ``trajectories.png`` and, with several layouts,
-    ``heatmap.png``. ``info`` is merged into the JSON (config, checkpoint, keypoints, ...).
-    Returns the report written."""
+    ``heatmap.png``. ``info`` is merged into the JSON (config, checkpoint, keypoints, ...); ``legs``
+    holds the leg log, with the no-pruning rows' budgets at ``false_alarm``. Returns the report written."""
     os.makedirs(out, exist_ok=True)
     if graph is None:  # a method without a map
         nodes_xy, edges = np.zeros((0, 2)), np.zeros((0, 2), int)
@@ -45,7 +47,7 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
         nodes_xy = np.asarray(graph.obs)[:, :2]
         edges = edge_list(graph.w, np.asarray(graph.mask))
     report = dict(env=env_name, **info, edges=int(len(edges)), agents=res.agents, variants=res.variants,
-                  tasks=res.tasks, summary=res.summary, legs=calibration.report(res), timing=res.timing,
+                  tasks=res.tasks, summary=res.summary, legs=calibration.report(res, false_alarm), timing=res.timing,
                   backend=jax.default_backend(),
                   device=str(jax.devices()[0]), device_count=jax.device_count())
     write_json(os.path.join(out, 'results.json'), report)
