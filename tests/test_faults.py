@@ -461,3 +461,25 @@ def test_bad_arguments_are_named_before_any_work(tmp_path, grid_data, grid_file,
         assert len(lines) == 1 and re.search(message, lines[0]), (argv, lines)
     assert not os.path.exists(tmp_path / 'q') and not os.path.exists(tmp_path / 'ro')
     assert not os.path.exists(os.path.join(run_dir, 'eval'))
+
+
+def test_training_bar_draws_once_per_chunk(tmp_path, grid_data, monkeypatch):
+    """Logs of long runs hold one bar line per jitted chunk (a redraw for the postfix doubled them)."""
+    import io
+    import tqdm.auto
+
+    draws = []
+
+    class Counting(tqdm.auto.tqdm):  # draws on every update, whatever the time since the last one
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, mininterval=0, miniters=0, file=io.StringIO(), **kwargs)
+
+        def display(self, *args, **kwargs):
+            draws.append(self.n)
+            return super().display(*args, **kwargs)
+
+    monkeypatch.setattr(tqdm.auto, 'tqdm', Counting)
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=100)
+    fit.train('gcbc', cfg, grid_data, str(tmp_path / 'run'), progress=True, log=lambda *_: None)
+    u = cfg.updates_per_call
+    assert 100 % u == 0 and draws == [0] + list(range(u, 101, u)) + [100]  # open, each chunk, close

@@ -367,8 +367,10 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
                 raise _diverged(cfg, step, bad[i], '' if seeds is None else f' (seed folder {outs[i]})',
                                 savers[i].steps())
             if bar is not None:
+                # postfix first without a redraw: update() draws once (a refresh here wrote every line twice in logs)
+                bar.set_postfix({k.split('/')[-1]: f'{v:.3g}' for k, v in lines[0].items() if k in PROGRESS_KEYS},
+                                refresh=False)
                 bar.update(cfg.updates_per_call)
-                bar.set_postfix({k.split('/')[-1]: f'{v:.3g}' for k, v in lines[0].items() if k in PROGRESS_KEYS})
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
                 for i, (saver, done) in enumerate(zip(savers, skip)):
                     if step not in done:
