@@ -468,7 +468,7 @@ def test_training_bar_draws_once_per_chunk(tmp_path, grid_data, monkeypatch):
     import io
     import tqdm.auto
 
-    draws = []
+    draws, bars = [], []
 
     class Counting(tqdm.auto.tqdm):  # draws on every update, whatever the time since the last one
         def __init__(self, *args, **kwargs):
@@ -478,8 +478,14 @@ def test_training_bar_draws_once_per_chunk(tmp_path, grid_data, monkeypatch):
             draws.append(self.n)
             return super().display(*args, **kwargs)
 
+        def set_postfix(self, ordered_dict=None, refresh=True, **kwargs):
+            self.postfix_seen = dict(ordered_dict or {})
+            bars.append(self)
+            return super().set_postfix(ordered_dict, refresh=refresh, **kwargs)
+
     monkeypatch.setattr(tqdm.auto, 'tqdm', Counting)
     cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=100)
     fit.train('gcbc', cfg, grid_data, str(tmp_path / 'run'), progress=True, log=lambda *_: None)
     u = cfg.updates_per_call
     assert 100 % u == 0 and draws == [0] + list(range(u, 101, u)) + [100]  # open, each chunk, close
+    assert list(bars[0].postfix_seen) == ['actor']  # gcbc's loss, under its label

@@ -368,7 +368,7 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
                                 savers[i].steps())
             if bar is not None:
                 # postfix first without a redraw: update() draws once (a refresh here wrote every line twice in logs)
-                bar.set_postfix({k.split('/')[-1]: f'{v:.3g}' for k, v in lines[0].items() if k in PROGRESS_KEYS},
+                bar.set_postfix({PROGRESS_KEYS[k]: f'{v:.3g}' for k, v in lines[0].items() if k in PROGRESS_KEYS},
                                 refresh=False)
                 bar.update(cfg.updates_per_call)
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
@@ -385,7 +385,11 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
     return state, step
 
 
-PROGRESS_KEYS = ('qrl/d_pos_mean', 'qrl/d_goal_mean', 'qrl/lambda', 'policy/main_loss')  # shown on the bar
+#: Metrics shown on the training bar (first seed), by the label they get there: AQM's, then the baselines' losses.
+PROGRESS_KEYS = {'qrl/d_pos_mean': 'd_pos_mean', 'qrl/d_goal_mean': 'd_goal_mean', 'qrl/lambda': 'lambda',
+                 'policy/main_loss': 'main_loss', 'value/loss': 'value', 'critic/loss': 'critic',
+                 'actor/loss': 'actor', 'high_actor/loss': 'high', 'low_actor/loss': 'low',
+                 'value/lambda': 'lambda'}
 
 
 def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs: list[str], keys: jax.Array,
