@@ -72,7 +72,10 @@ def method_configs(env_name: str, names: Sequence[str], preset: str, overrides: 
         try:
             cfg = cfg.with_overrides(shared)
         except ValueError as e:
-            raise ValueError(f'{n}: {e}; give an override one method has as {n}:FIELD=VALUE') from None
+            # a field this method lacks: scope it; a bad value: the message says what is wrong with it
+            lacks = 'no section has a field' in str(e) or ' field ' in str(e) and str(e).startswith('unknown')
+            raise ValueError(f'{n}: {e}' + (f'; give an override one method has as {n}:FIELD=VALUE' if lacks
+                                             else '')) from None
         out[n] = cfg.with_overrides(scoped[n])
     return out
 

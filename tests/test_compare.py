@@ -80,6 +80,8 @@ def test_requests_are_checked_before_any_work(tmp_path):
     # a shared field one method lacks names the method and says how to scope it
     with pytest.raises(ValueError, match='gcbc: .*lr_quasimetric.*gcbc:FIELD=VALUE'):
         compare.method_configs('pointmaze-medium', ['aqm', 'gcbc'], 'ci', ['lr_quasimetric=1e-4'])
+    with pytest.raises(ValueError, match=r'^aqm: .*multiple of updates_per_call[^;]*$'):  # a bad value: no scoping hint
+        compare.method_configs('pointmaze-medium', ['aqm', 'gcbc'], 'ci', ['steps=7'])
     cfgs = compare.method_configs('pointmaze-medium', ['gcivl', 'gcbc'], 'ci',
                                   ['steps=100', 'gcivl:actor_p_trajectory=0.5', 'gcivl:actor_p_random=0.5'])
     assert cfgs['gcivl'].train.steps == cfgs['gcbc'].train.steps == 100
