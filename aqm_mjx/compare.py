@@ -4,7 +4,7 @@
 
 One folder holds the whole comparison::
 
-    OUT/compare.json                    what was asked (checked on every re-run)
+    OUT/compare.json                    what was asked and the data's SHA-256 (both checked on every re-run)
     OUT/data/ENV-STYLE.npz              collected once (or --dataset)
     OUT/train/METHOD/seed_S/            an ordinary run folder per method and seed
     OUT/eval/METHOD/                    `aqm-mjx evaluate` of that method's seeds
@@ -223,10 +223,21 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
     spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
     with files.run_lock(out):  # one writer per run folder
         all_names = _check_spec(out, spec, names)
-        files.write_json(os.path.join(out, 'compare.json'), dict(spec, methods=all_names), makedirs=True)
+        cpath = os.path.join(out, 'compare.json')
+        recorded = files.read_json(cpath).get('data_sha256') if os.path.exists(cpath) else None
+        kept = {} if recorded is None else dict(data_sha256=recorded)
+        files.write_json(cpath, dict(spec, methods=all_names, **kept), makedirs=True)
 
         path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style)
         data = run.read_data(path, env)
+        digest = ds_io.fingerprint(data)
+        if recorded is not None and recorded != digest:
+            raise ValueError(f'{path}: the data changed since this comparison began (sha256 {digest[:16]}... now, '
+                             f'{recorded[:16]}... in {cpath}): its methods would not share their data; restore '
+                             'the file or choose another --out')
+        files.write_json(cpath, dict(spec, methods=all_names, data_sha256=digest))
+        spec = dict(spec, data_sha256=digest)  # into results.json beside the request
+        log(f'data: {path} ({len(data["observations"])} states, sha256 {digest[:16]}...)')
         log(f'{len(names)} method(s) x {seeds} seed(s) ({preset} preset), one method at a time: its seeds trained '
             f'as one vmapped program, then evaluated on the episodes of PRNGKey({eval_seed}); the table grows as each '
             'ends')

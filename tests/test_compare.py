@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from aqm_mjx import cli, compare
+from aqm_mjx import cli, compare, envs, run
+from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
 from aqm_mjx.evaluation import stats
 from aqm_mjx.learn import fit, methods
@@ -179,6 +180,18 @@ def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(t
     # the folder holds one comparison: other settings are refused, naming what differs
     with pytest.raises(ValueError, match='overrides'):
         compare.compare('pointmaze-medium', ['gcbc'], 2, out, preset='ci', dataset=path, overrides=over[:1], **QUIET)
+    # the data's SHA-256 is recorded beside the request and in the table's JSON; a file changed under the
+    # folder is refused before any work, and the folder's record is kept as it was
+    digest = ds_io.fingerprint(run.read_data(path, envs.make('pointmaze-medium')))
+    saved = json.load(open(os.path.join(out, 'compare.json')))
+    assert first['data_sha256'] == second['data_sha256'] == saved['data_sha256'] == digest and len(digest) == 64
+    data, _ = _data(tmp_path)
+    data['actions'][7, 1] += 0.25
+    np.savez(path, **data)
+    with pytest.raises(ValueError, match=f'the data changed since this comparison began.*{saved["data_sha256"][:16]}'):
+        compare.compare('pointmaze-medium', ['gcbc', 'gcivl'], 2, out, preset='ci', dataset=path, overrides=over,
+                        **QUIET)
+    assert json.load(open(os.path.join(out, 'compare.json'))) == saved
 
 
 def test_baselines_take_ogbench_settings_for_stitch_and_explore_data():

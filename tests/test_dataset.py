@@ -159,3 +159,23 @@ def test_a_dataset_without_transitions_is_refused():
     raw = fake_raw(n_traj=3, length=1, with_info=False)  # every state ends its trajectory
     with pytest.raises(dsm.DatasetError, match='no transitions'):
         dsm.to_device(raw)
+
+
+def test_fingerprint_is_the_sha256_of_names_dtypes_shapes_and_bytes():
+    import hashlib
+    d = dict(terminals=np.array([False, True]), actions=np.arange(4, dtype=np.float32).reshape(2, 2))
+    h = hashlib.sha256()
+    h.update(b'actions\0<f4\0(2, 2)\0')
+    h.update(np.arange(4, dtype=np.float32).tobytes())
+    h.update(b'terminals\0|b1\0(2,)\0')
+    h.update(b'\x00\x01')
+    assert dsm.fingerprint(d) == h.hexdigest()
+    raw = fake_raw()
+    assert dsm.fingerprint(raw) == dsm.fingerprint(dict(reversed(list(raw.items()))))  # key order does not count
+    assert dsm.fingerprint(raw) == dsm.fingerprint({k: np.asfortranarray(v) for k, v in raw.items()})
+    for change in (lambda r: r['actions'].__setitem__((3, 2), r['actions'][3, 2] + 1e-6),  # one value
+                   lambda r: r.__setitem__('terminals', r['terminals'].astype(np.int8)),  # the dtype
+                   lambda r: r.__setitem__('qvel', r['qvel'].reshape(-1, 7, 2))):  # the shape
+        other = {k: v.copy() for k, v in raw.items()}
+        change(other)
+        assert dsm.fingerprint(other) != dsm.fingerprint(raw)

@@ -14,6 +14,7 @@ of ``t``'s trajectory, which is what keeps every sampled goal inside its traject
 
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 import zipfile
@@ -153,6 +154,19 @@ def write_ogbench(path: str, data: dict) -> None:
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
+
+
+def fingerprint(data: dict) -> str:
+    """The SHA-256 (hex) of a dataset's arrays: over the names in sorted order, each name, dtype,
+    shape and C-order bytes. Two files hold the same data exactly when their fingerprints agree,
+    whatever their compression or key order; ``aqm-mjx compare`` records it and refuses a folder
+    whose data changed under it."""
+    h = hashlib.sha256()
+    for k in sorted(data):
+        a = np.ascontiguousarray(np.asarray(data[k]))
+        h.update(f'{k}\0{a.dtype.str}\0{a.shape}\0'.encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def val_path(path: str) -> str:
