@@ -86,19 +86,20 @@ def _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, override
                 dataset=os.path.abspath(dataset) if dataset else None)
 
 
-def _check_spec(out: str, spec: dict, names: list[str]) -> list[str]:
-    """The methods of ``OUT/compare.json`` and these, after checking that the rest of the request
-    is the same (a folder holds one comparison)."""
+def _check_spec(out: str, spec: dict, names: list[str]) -> tuple[list[str], Optional[str]]:
+    """The methods of ``OUT/compare.json`` and these, and the data's SHA-256 recorded there (None
+    before the first data stage), after checking that the rest of the request is the same (a folder
+    holds one comparison)."""
     path = os.path.join(out, 'compare.json')
     if not os.path.exists(path):
-        return names
+        return names, None
     saved = files.read_json(path, 'a comparison folder written by aqm-mjx compare')
     diff = [k for k in spec if saved.get(k) != spec[k]]
     if diff:
         raise ValueError(f'{out} holds a comparison with other settings ('
                          + '; '.join(f'{k}: {saved.get(k)!r} there, {spec[k]!r} now' for k in diff)
                          + '); choose another --out')
-    return list(dict.fromkeys(saved.get('methods', []) + names))
+    return list(dict.fromkeys(saved.get('methods', []) + names)), saved.get('data_sha256')
 
 
 def seed_folders(out: str, method: str, seeds: Sequence[int]) -> list[str]:
@@ -222,9 +223,8 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
     seed_ids = [first_seed + i for i in range(seeds)]
     spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
     with files.run_lock(out):  # one writer per run folder
-        all_names = _check_spec(out, spec, names)
+        all_names, recorded = _check_spec(out, spec, names)
         cpath = os.path.join(out, 'compare.json')
-        recorded = files.read_json(cpath).get('data_sha256') if os.path.exists(cpath) else None
         kept = {} if recorded is None else dict(data_sha256=recorded)
         files.write_json(cpath, dict(spec, methods=all_names, **kept), makedirs=True)
 
@@ -235,7 +235,8 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
             raise ValueError(f'{path}: the data changed since this comparison began (sha256 {digest[:16]}... now, '
                              f'{recorded[:16]}... in {cpath}): its methods would not share their data; restore '
                              'the file or choose another --out')
-        files.write_json(cpath, dict(spec, methods=all_names, data_sha256=digest))
+        if recorded is None:  # the first data stage of this folder: record what its methods share
+            files.write_json(cpath, dict(spec, methods=all_names, data_sha256=digest))
         spec = dict(spec, data_sha256=digest)  # into results.json beside the request
         log(f'data: {path} ({len(data["observations"])} states, sha256 {digest[:16]}...)')
         log(f'{len(names)} method(s) x {seeds} seed(s) ({preset} preset), one method at a time: its seeds trained '

@@ -356,8 +356,8 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
     assert ('Budgets that cut 0.5% of them' in printed) == bool(res['legs']['no-pruning'])
     # protocol.calibrate: a no-pruning pass on other episodes sets the AQM row's stall patience first,
     # which is the same as giving that patience by hand
-    # (a switch radius of 3 in d: this 100-update model then completes ~20 legs in the pass on any CPU;
-    # at the ci preset's 0.6 it completed 0-1 on an AMD EPYC, where XLA's code gives other weights)
+    # (a switch radius of 3 in d: this 100-update model completed 22 legs in the pass on a 2-core AMD
+    # EPYC; at the ci preset's 0.6 it completed 0-1 there, where XLA's code gives it other weights)
     one = ['evaluate', '--checkpoint', str(out), '--episodes', '1', '--horizon', '60', '--delta', '1',
            '--max-keypoints', '16', '--envs', '32', '--ablations', 'no-pruning', '--set', 'agent.switch_radius=3']
     assert cli.main(one + ['--set', 'protocol.calibrate=stall', '--set', 'protocol.false_alarm=0.2',
