@@ -20,6 +20,12 @@ For every checkpoint (a seed), with one map (``stage_keys(PRNGKey(--seed))``, as
    z_i -> z_j also cuts the edges from within S w(i, j) of z_i to within S w(i, j) of z_j,
    ``AgentConfig.cut_slack``).
 
+The rows of steps 1-2 use the paper's single cut (``cut_slack`` 0) whatever the preset says (the
+``cpu`` preset's AQM row cuts in parallel at 0.6: ``--cut-slack 0.6`` gives that row).
+``--short`` keeps only the rows issue 17's acceptance names, about 2.3x fewer episodes: the paper's
+fixed rule at the preset's kappa, no pruning (and flat), and the calibrated stall rule with each
+``--cut-slack`` (with the single cut when none is given).
+
 Prints per row and layout: success pooled over seeds with its 95% Wilson interval, the per-seed
 means, the legs cut per episode (overruns) and the keypoint edges removed per episode (more than the
 overruns with ``--cut-slack``: an overrun also cuts the edges parallel to it); writes ``rows.json``.
@@ -101,13 +107,18 @@ def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> di
     for q, (kappa_c, patience_c) in zip(a.false_alarm, settings):
         # rows are named by rule (and rate), not by the calibrated value, which differs from seed to seed
         at = f' at {q:.1%}' if several else ''
+        if a.short:  # the stall rule alone, and only when no parallel-cut pass gives it below
+            if not a.cut_slack:
+                ablations.append(f'stall={patience_c:g}')
+                names[ablations[-1]] = f'stall, calibrated patience{at}'
+            continue
         ablations += [f'kappa={kappa_c}', f'stall={patience_c:g}']
         names[ablations[-2]], names[ablations[-1]] = f'fixed, calibrated kappa{at}', f'stall, calibrated patience{at}'
     ablations += ['no-pruning'] + (['flat'] if a.flat else [])
     names.update({'no-pruning': 'no pruning', 'flat': 'flat'})
     proto = dataclasses.replace(cfg.protocol, episodes=a.episodes, ablations=tuple(dict.fromkeys(ablations)))
-    res = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, patience=0.0), proto, variants,
-                            key=k_eval, progress=a.progress)
+    single = dataclasses.replace(cfg.agent, patience=0.0, cut_slack=0.0)  # the paper's rule: one cut per overrun
+    res = evaluate.evaluate(env, trained.agent, graph, single, proto, variants, key=k_eval, progress=a.progress)
     rows = {}
 
     def collect(res, names):
@@ -122,12 +133,18 @@ def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> di
     for slack in a.cut_slack:
         for q, (kappa_c, patience_c) in zip(a.false_alarm, settings):
             at = f' at {q:.1%}' if several else ''
-            agent_cfg = dataclasses.replace(cfg.agent, kappa=kappa_c, patience=0.0, cut_slack=slack)
-            proto_s = dataclasses.replace(proto, ablations=(f'stall={patience_c:g}',))
+            stall_name = f'stall, calibrated patience{at}, parallel cuts {slack:g}'
+            if a.short:  # the stall rule as the AQM row, alone
+                agent_cfg = dataclasses.replace(cfg.agent, kappa=kappa_c, patience=patience_c, cut_slack=slack)
+                proto_s, names_s = dataclasses.replace(proto, ablations=()), {'aqm': stall_name}
+            else:  # the calibrated fixed rule as the AQM row, the stall rule beside it
+                agent_cfg = dataclasses.replace(cfg.agent, kappa=kappa_c, patience=0.0, cut_slack=slack)
+                proto_s = dataclasses.replace(proto, ablations=(f'stall={patience_c:g}',))
+                names_s = {'aqm': f'fixed, calibrated kappa{at}, parallel cuts {slack:g}',
+                           f'stall={patience_c:g}': stall_name}
             res_s = evaluate.evaluate(env, trained.agent, graph, agent_cfg, proto_s, variants, key=k_eval,
                                       progress=a.progress)
-            collect(res_s, {'aqm': f'fixed, calibrated kappa{at}, parallel cuts {slack:g}',
-                            f'stall={patience_c:g}': f'stall, calibrated patience{at}, parallel cuts {slack:g}'})
+            collect(res_s, names_s)
     kappa_c, patience_c = settings[0]
     return dict(checkpoint=ckpt, keypoints=m['keypoints'], calibration=c, kappa=kappa_c, patience=patience_c,
                 calibrations=[dict(false_alarm=q, kappa=k, patience=p) for q, (k, p) in zip(a.false_alarm, settings)],
@@ -151,6 +168,9 @@ def main():
                         '(AgentConfig.cut_slack: an overrun also cuts the edges parallel to it)')
     p.add_argument('--no-flat', dest='flat', action='store_false',
                    help='leave out the flat row (its episodes mostly run to the step limit: the costliest row)')
+    p.add_argument('--short', action='store_true',
+                   help="only the acceptance's rows: the paper's fixed rule, no pruning (and flat) and the calibrated "
+                        'stall rule with each --cut-slack')
     p.add_argument('--no-progress', dest='progress', action='store_false')
     p.add_argument('--out', help='folder for rows.json')
     a = p.parse_args()
