@@ -69,7 +69,7 @@ def parse(argv=None):
     if not 0 < a.false_alarm < 1:
         raise SystemExit(f'--false-alarm must be in (0, 1); got {a.false_alarm}')
     # bench_budgets.one_seed reads these
-    a.false_alarm, a.flat, a.shift, a.dataset, a.cut_slack = [a.false_alarm], False, 'base', None, []
+    a.false_alarm, a.flat, a.shift, a.dataset, a.cut_slack, a.short = [a.false_alarm], False, 'base', None, [], False
     return a
 
 
