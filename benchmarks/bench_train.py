@@ -1,7 +1,7 @@
 """Training updates/s of every registered method at the ``cpu`` and ``paper`` shapes, compile time
 apart, and seeds vmapped against one seed, in one run.
 
-    python benchmarks/bench_train.py                                   # CPU: every method, about 25 minutes here
+    python benchmarks/bench_train.py                                   # CPU: every method, 25-35 min on 2 cores
     python benchmarks/bench_train.py --methods aqm hiql --presets cpu  # some of them
     python benchmarks/bench_train.py --presets paper --calls 5         # on a GPU
 
