@@ -24,8 +24,36 @@ def test_interval_union_length_matches_brute_force():
     grid = np.linspace(0, 1, 20001)[:-1] + 0.5 / 20000  # midpoints of a fine grid
     covered = ((grid[None, None] >= x[..., None]) & (grid[None, None] < np.maximum(x, y)[..., None])).any(1)
     brute = covered.mean(-1)
-    ours = np.asarray(qm.interval_union_length(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32)))
-    np.testing.assert_allclose(ours, brute, atol=2e-4)
+    for f in (qm.interval_union_length, qm.interval_union_length_sorted):
+        ours = np.asarray(f(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32)))
+        np.testing.assert_allclose(ours, brute, atol=2e-4)
+
+
+def test_interval_union_sweep_equals_the_sort_with_ties_nesting_and_empty_intervals():
+    # Starts and ends on a coarse grid, so equal starts, equal ends, nested and touching intervals
+    # and empty ones (y <= x) all occur; lengths are exact in float32 (multiples of 1/4).
+    rng = np.random.default_rng(3)
+    x = rng.integers(0, 12, (4000, 8)).astype(np.float32) / 4
+    y = rng.integers(0, 12, (4000, 8)).astype(np.float32) / 4
+    sweep = np.asarray(qm.interval_union_length(jnp.asarray(x), jnp.asarray(y)))
+    np.testing.assert_array_equal(sweep, np.asarray(qm.interval_union_length_sorted(jnp.asarray(x), jnp.asarray(y))))
+    # One row by hand: [1, 3], [1, 2] (same start, nested), [3, 4] (touching), [5, 5] and [6, 0] empty,
+    # [0.5, 1] (ends where two start), [2, 2.5] (inside), [1, 3] (a copy): union [0.5, 4], length 3.5.
+    row_x = jnp.array([1.0, 1.0, 3.0, 5.0, 6.0, 0.5, 2.0, 1.0])
+    row_y = jnp.array([3.0, 2.0, 4.0, 5.0, 0.0, 1.0, 2.5, 3.0])
+    assert float(qm.interval_union_length(row_x, row_y)) == 3.5
+
+
+def test_interval_union_sweep_gradients_equal_the_sort():
+    # Continuous endpoints (no ties): the length is differentiable and both ways give d/dx, d/dy in
+    # {-1, 0, 1}: -1 at an exposed start, +1 at an exposed end, 0 where another interval covers it.
+    x = jax.random.normal(jax.random.PRNGKey(0), (256, 64, 8))
+    y = jax.random.normal(jax.random.PRNGKey(1), (256, 64, 8))
+    grads = [jax.grad(lambda a, b: jnp.sum(f(a, b)), argnums=(0, 1))(x, y)
+             for f in (qm.interval_union_length, qm.interval_union_length_sorted)]
+    for g_sweep, g_sort in zip(*grads):
+        np.testing.assert_array_equal(np.asarray(g_sweep), np.asarray(g_sort))
+        assert set(np.unique(np.asarray(g_sweep))) <= {-1.0, 0.0, 1.0}
 
 
 @pytest.mark.parametrize('n,m', [(64, 8), (512, 1), (16, 4)])

@@ -20,11 +20,29 @@ import jax.numpy as jnp
 def interval_union_length(x: jax.Array, y: jax.Array) -> jax.Array:
     """Length of ``union_j [x_j, max(x_j, y_j)]`` over the last axis: ``x, y [..., M]`` -> ``[...]``.
 
-    Endpoints are sorted; coverage between consecutive endpoints is the running count of interval
-    starts minus ends, and a gap counts when that coverage is positive.
+    A sweep in order of the intervals' starts without sorting: interval i adds what reaches past
+    its start and past the furthest end of every interval before it (earlier start, or the same
+    start and a lower index), ``relu(hi_i - max(x_i, max_{j before i} hi_j))``. That is M^2
+    comparisons per component instead of a sort of 2M endpoints: on XLA's CPU the sort was 6x
+    slower for OGBench's components of 8 (``benchmarks/bench_iqe.py``). An empty interval
+    (``y_j <= x_j``) ends at its start, so it adds nothing and never covers a later start.
     """
     if x.shape[-1] == 1:  # one interval: its length (the paper's 512 x 1 latent takes this path)
         return jax.nn.relu(y[..., 0] - x[..., 0])
+    hi = jnp.maximum(x, y)
+    idx = jnp.arange(x.shape[-1])
+    xi, xj = x[..., :, None], x[..., None, :]  # [..., M (i), M (j)]
+    before = (xj < xi) | ((xj == xi) & (idx[None, :] < idx[:, None]))
+    reach = jnp.max(jnp.where(before, hi[..., None, :], -jnp.inf), axis=-1)  # -inf: nothing before i
+    return jnp.sum(jax.nn.relu(hi - jnp.maximum(x, reach)), axis=-1)
+
+
+def interval_union_length_sorted(x: jax.Array, y: jax.Array) -> jax.Array:
+    """The same length by sorting the 2M endpoints (the reference for tests and the benchmark).
+
+    Coverage between consecutive endpoints is the running count of interval starts minus ends, and
+    a gap counts when that coverage is positive. ``x, y [..., M]`` -> ``[...]``.
+    """
     valid = (x < y).astype(x.dtype)
     ends = jnp.concatenate([x, jnp.maximum(x, y)], axis=-1)  # [..., 2M]
     inc = jnp.concatenate([valid, -valid], axis=-1)  # +1 at a start, -1 at an end (0 for empty intervals)
