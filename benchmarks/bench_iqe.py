@@ -7,9 +7,10 @@ reference), and QRL's training updates/s with each, in one run.
 Part 1 times ``value_and_grad`` of the summed lengths for latents of OGBench's QRL (64 components of
 8) at the ``cpu`` and ``paper`` batches (256, 1024), compile apart from the mean of ``--calls`` runs,
 and checks that both give the same lengths, and the same gradients except where two endpoints are
-equal (there the length has no gradient and each hands the subgradient to a different end). Part 2 runs QRL's whole update (its IQE,
-latent dynamics and DDPG+BC actor; bench_train's row) with the package's sweep and then with
-``interval_union_length`` swapped for the sort at trace time, and prints the ratio.
+equal (there the length has no gradient and each hands the subgradient to a different end).
+Part 2 runs QRL's whole update (its IQE, latent dynamics and DDPG+BC actor; bench_train's row)
+with the package's sweep and then with ``interval_union_length`` swapped for the sort at trace
+time, and prints the ratio.
 AQM's own IQE (components of 1) takes neither path; it is one ``relu``.
 """
 
@@ -46,14 +47,13 @@ def _grad_check(x, y, g_sweep, g_sort) -> dict:
     Where endpoints tie (two equal ends, say) the length is not differentiable and each way hands
     the subgradient to a different one of them; elsewhere the two must agree exactly.
     """
-    differ = np.zeros(x.shape[:-1], bool)
-    for a, b in zip(g_sweep, g_sort):
-        differ |= np.any(np.asarray(a) != np.asarray(b), axis=-1)
+    neq = [np.asarray(a) != np.asarray(b) for a, b in zip(g_sweep, g_sort)]  # d/dx, d/dy: [..., M] each
+    differ = np.any(neq[0] | neq[1], axis=-1)  # components with a differing entry
     ends = np.concatenate([np.asarray(x), np.maximum(np.asarray(x), np.asarray(y))], axis=-1)[differ]  # [n, 2M]
     srt = np.sort(ends, axis=-1)
     tied = np.any(srt[:, 1:] == srt[:, :-1], axis=-1)
-    n = sum(int(np.sum(np.asarray(a) != np.asarray(b))) for a, b in zip(g_sweep, g_sort))
-    return dict(grad_entries=2 * int(x.size), grad_entries_differ=n, differ_only_at_ties=bool(np.all(tied)))
+    return dict(grad_entries=2 * int(x.size), grad_entries_differ=int(sum(e.sum() for e in neq)),
+                differ_only_at_ties=bool(np.all(tied)))
 
 
 def union_rows(calls):
