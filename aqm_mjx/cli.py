@@ -1,4 +1,4 @@
-"""Command line: ``aqm-mjx {run,collect,train,evaluate,compare,methods,rollouts,render,envs}``.
+"""Command line: ``aqm-mjx {run,collect,train,evaluate,compare,merge,methods,rollouts,render,envs}``.
 
 ``run`` is the whole pipeline (collect -> train -> keypoints -> evaluate); the other commands are
 its stages, or tools. This module only parses arguments: the options of the map, agent and protocol
@@ -304,6 +304,14 @@ def cmd_compare(a):
     return 0
 
 
+def cmd_merge(a):
+    """Finished comparisons on the same data and episodes as one table."""
+    from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
+
+    compare.merge(a.folders, a.out)
+    return 0
+
+
 def _one_line(err: BaseException) -> str:
     """An error as the one line the user reads: an OS error as ``path: reason``."""
     if isinstance(err, OSError) and err.strerror and err.filename:
@@ -469,6 +477,15 @@ def build_parser() -> argparse.ArgumentParser:
                                                              'environments (default 0: this process)')
     k.add_argument('--out', default=None, help='comparison folder (default runs/compare-ENV-STYLE)')
     k.set_defaults(fn=cmd_compare)
+    g = sub.add_parser(
+        'merge', help='one table from several compare folders on the same data and episodes',
+        description='Put the rows of finished `aqm-mjx compare` folders into one table (OUT/results.json, '
+                    'OUT/table.md, OUT/success.png), after checking that they share the data (SHA-256), seeds, '
+                    'episode key, layout, tasks, episodes and the overrides given to every method. Each method '
+                    'comes from one folder; the folders are only read.')
+    g.add_argument('folders', nargs='+', metavar='FOLDER', help='comparison folders (aqm-mjx compare --out)')
+    g.add_argument('--out', required=True, help='folder of the merged table (not one of the comparisons)')
+    g.set_defaults(fn=cmd_merge)
     return p
 
 

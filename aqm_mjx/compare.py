@@ -10,6 +10,9 @@ One folder holds the whole comparison::
     OUT/eval/METHOD/                    `aqm-mjx evaluate` of that method's seeds
     OUT/results.json, table.md, success.png   the comparison
 
+:func:`merge` (``aqm-mjx merge A B --out C``) puts finished comparisons on the same data
+(by SHA-256) and episodes into one table.
+
 Each method's seeds train as one vmapped program (:func:`aqm_mjx.learn.fit.train_seeds`); a seed's
 run key is ``PRNGKey(seed)`` split by :func:`~aqm_mjx.pipeline.stage_keys`, as in ``aqm-mjx run
 --seed S``. Every checkpoint is evaluated with the episode keys of ``PRNGKey(eval_seed)``, so all
@@ -173,7 +176,7 @@ def markdown(rows: dict, variant: str, tasks: Sequence[int], seeds: Sequence[int
     return '\n'.join(lines) + '\n'
 
 
-def _write_tables(out, spec, per_method, seed_ids, cfgs, env_name, style, preset, log) -> dict:
+def _write_tables(out, spec, per_method, seed_ids, cfgs, log) -> dict:
     """``OUT/results.json``, ``table.md`` and ``success.png`` of the methods evaluated so far."""
     names = list(per_method)
     first = per_method[names[0]]
@@ -181,14 +184,78 @@ def _write_tables(out, spec, per_method, seed_ids, cfgs, env_name, style, preset
     variant, tasks, episodes = first['variants'][0], first['tasks'], int(first['episodes'])
     result = dict(spec, methods=names, tasks=tasks, episodes=episodes, variants=first['variants'], rows=rows,
                   configs={n: c.to_dict() for n, c in cfgs.items()})
-    files.write_json(os.path.join(out, 'results.json'), result)
-    table = markdown(rows, variant, tasks, seed_ids, episodes)
+    _write(out, result, log)
+    return result
+
+
+def _write(out: str, result: dict, log) -> None:
+    """``result`` (a comparison as ``results.json`` holds it) to ``OUT/results.json``, ``table.md`` and
+    ``success.png``."""
+    rows, variant, seed_ids = result['rows'], result['variants'][0], result['seeds']
+    files.write_json(os.path.join(out, 'results.json'), result, makedirs=True)
+    table = markdown(rows, variant, result['tasks'], seed_ids, int(result['episodes']))
     files.write_text(os.path.join(out, 'table.md'), table)
     plots.method_bars(rows, variant, os.path.join(out, 'success.png'),
-                      title=f'{env_name} {style} ({variant}), {preset} preset: mean of {len(seed_ids)} seed(s), 95% '
-                            'interval')
+                      title=f'{result["env"]} {result["style"]} ({variant}), {result["preset"]} preset: mean of '
+                            f'{len(seed_ids)} seed(s), 95% interval')
     log(table)
     log(f'wrote {out}/results.json, {out}/table.md and {out}/success.png')
+
+
+# what two comparison folders must share for their rows to sit in one table: the data (by SHA-256),
+# the request, and the episodes
+_SHARED = ('data_sha256', 'env', 'style', 'preset', 'seeds', 'eval_seed', 'shift', 'tasks', 'episodes', 'variants')
+
+
+def merge(folders: Sequence[str], out: str, log=print) -> dict:
+    """One table from several finished ``aqm-mjx compare`` folders: their methods' rows side by side.
+
+    For rows that several sessions (or machines) computed on the same data and episodes. Every folder's
+    ``results.json`` must agree on the data's SHA-256, the environment, style, preset, seeds, episode key
+    (``eval_seed``), layout, tasks and episodes, and on the overrides given to every method (a
+    ``METHOD:`` override travels with its method); a method may appear in one folder only. Writes
+    ``OUT/results.json`` (with ``merged_from``), ``OUT/table.md`` and ``OUT/success.png``; the inputs
+    are only read. Returns the merged comparison.
+    """
+    folders = [os.path.normpath(f) for f in folders]
+    if len(folders) < 2:
+        raise ValueError(f'give at least two comparison folders to merge; got {len(folders)}')
+    if len(set(folders)) != len(folders):
+        raise ValueError(f'folders repeat: {folders}')
+    if os.path.normpath(out) in folders or os.path.exists(os.path.join(out, 'compare.json')):
+        raise ValueError(f'{out} is a comparison folder; write the merged table to another --out (its own '
+                         'files would be replaced)')
+    parts = [files.read_json(os.path.join(f, 'results.json'), 'a folder written by aqm-mjx compare')
+             for f in folders]
+    first = parts[0]
+    for f, r in zip(folders, parts):
+        if not r.get('data_sha256'):
+            raise ValueError(f'{f}/results.json records no data SHA-256 (written before aqm-mjx recorded it): '
+                             'its data cannot be shown to be the others\'')
+        diff = [k for k in _SHARED if r.get(k) != first.get(k)]
+        shared = sorted(o for o in r.get('overrides', []) if ':' not in o.split('=', 1)[0])
+        if shared != sorted(o for o in first.get('overrides', []) if ':' not in o.split('=', 1)[0]):
+            diff.append('overrides')
+        if diff:
+            raise ValueError(f'{f} and {folders[0]} differ in ' + '; '.join(
+                f'{k} ({r.get(k)!r} against {first.get(k)!r})' for k in diff) + ': their rows would not share data '
+                'and episodes')
+    rows, configs, names, scoped, owner = {}, {}, [], [], {}
+    for f, r in zip(folders, parts):
+        for m in r['methods']:
+            if m in owner:
+                raise ValueError(f'method {m!r} is in both {owner[m]} and {f}: keep one (merge takes each method '
+                                 'from one folder)')
+            owner[m] = f
+            names.append(m)
+            configs[m] = r['configs'][m]
+            scoped += [o for o in r.get('overrides', []) if o.split('=', 1)[0].split(':', 1)[0] == m
+                       and ':' in o.split('=', 1)[0]]
+        rows.update({k: v for k, v in r['rows'].items() if k.split('/', 1)[0] in r['methods']})
+    result = dict(first, methods=names, rows=rows, configs=configs,
+                  overrides=[o for o in first.get('overrides', []) if ':' not in o.split('=', 1)[0]] + scoped,
+                  merged_from={m: os.path.abspath(f) for m, f in owner.items()})
+    _write(out, result, log)
     return result
 
 
@@ -256,8 +323,8 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
                 run.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
                 res = files.read_json(os.path.join(ev, 'results.json'))  # as a re-run reads it (JSON types)
             per_method[n] = res
-            result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method}, env_name, style,
-                                   preset, log if i + 1 == len(cfgs) else (lambda *_: None))
+            result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method},
+                                   log if i + 1 == len(cfgs) else (lambda *_: None))
             if i + 1 < len(cfgs):
                 log(f'{n}: done; {out}/table.md now holds {", ".join(per_method)}')
         return result

@@ -239,3 +239,61 @@ def test_the_explore_rule_reaches_every_entry_point(tmp_path, monkeypatch):
     assert cli.main(['train', '--dataset', path, '--preset', 'ci', '--steps', '50', '--set', 'updates_per_call=50',
                      '--set', 'log_every=50', '--set', 'checkpoint_every=50', '--out', out]) == 0
     assert json.load(open(os.path.join(out, 'config.json')))['config']['policy_goals'] == 'random'
+
+
+def _finished(folder, methods_rates, sha='ab' * 32, overrides=('protocol.episodes=10',), episodes=10):
+    """A compare folder's results.json as compare writes it: rows from per-seed tables via aggregate."""
+    per = {m: dict(episodes=episodes, tasks=[1, 2], variants=['base'],
+                   summary={f'{m}:seed_{s}/{"aqm" if m == "aqm" else "flat"}':
+                            {'base': {'task_1': r[0], 'task_2': r[1], 'mean': (r[0] + r[1]) / 2}}
+                            for s, r in enumerate(rates)}) for m, rates in methods_rates.items()}
+    result = dict(env='antmaze-medium', style='navigate', preset='cpu', seeds=[0, 1], eval_seed=0, shift='base',
+                  overrides=list(overrides), dataset=None, data_sha256=sha, methods=list(methods_rates), tasks=[1, 2],
+                  episodes=episodes, variants=['base'], rows=compare.aggregate(per, [0, 1]),
+                  configs={m: {'method': m} for m in methods_rates})
+    os.makedirs(folder)
+    with open(os.path.join(folder, 'results.json'), 'w') as f:
+        json.dump(result, f)
+    return result
+
+
+def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
+    a, b, out = (str(tmp_path / n) for n in ('a', 'b', 'out'))
+    ra = _finished(a, {'aqm': [(0.9, 0.7), (1.0, 0.8)], 'qrl': [(0.2, 0.0), (0.1, 0.1)]},
+                   overrides=('protocol.episodes=10', 'qrl:protocol.ablations=flat'))
+    rb = _finished(b, {'hiql': [(0.3, 0.1), (0.0, 0.2)]})
+    before = {f: open(os.path.join(f, 'results.json')).read() for f in (a, b)}
+    merged = compare.merge([a, b], out, **QUIET)
+    assert merged['methods'] == ['aqm', 'qrl', 'hiql'] and list(merged['rows']) == ['aqm', 'qrl', 'hiql']
+    assert merged['rows']['aqm'] == ra['rows']['aqm'] and merged['rows']['hiql'] == rb['rows']['hiql']
+    # hiql: seed means 0.2 and 0.1, 6 of 40 pooled episodes
+    h = merged['rows']['hiql']['base']
+    assert h['mean'] == pytest.approx(0.15) and h['episodes_ci95'] == [pytest.approx(x) for x in stats.wilson(6, 40)]
+    assert merged['overrides'] == ['protocol.episodes=10', 'qrl:protocol.ablations=flat']
+    assert merged['merged_from'] == {'aqm': os.path.abspath(a), 'qrl': os.path.abspath(a), 'hiql': os.path.abspath(b)}
+    table = open(os.path.join(out, 'table.md')).read()
+    assert '| aqm | 95 | 75 | **85** |' in table and '| hiql | 15 | 15 | **15** |' in table
+    assert os.path.getsize(os.path.join(out, 'success.png')) > 5000
+    assert json.load(open(os.path.join(out, 'results.json'))) == merged
+    assert cli.main(['merge', a, b, '--out', str(tmp_path / 'cli')]) == 0
+    assert json.load(open(tmp_path / 'cli' / 'results.json'))['rows'] == merged['rows']
+    # what would put rows of other data or episodes side by side is refused, naming it
+    other = str(tmp_path / 'other')
+    _finished(other, {'saw': [(0.5, 0.5), (0.5, 0.5)]}, sha='cd' * 32)
+    with pytest.raises(ValueError, match='differ in data_sha256'):
+        compare.merge([a, other], str(tmp_path / 'x'), **QUIET)
+    fewer = str(tmp_path / 'fewer')
+    _finished(fewer, {'saw': [(0.5, 0.5), (0.5, 0.5)]}, overrides=('protocol.episodes=5',), episodes=5)
+    with pytest.raises(ValueError, match='differ in episodes.*overrides'):
+        compare.merge([a, fewer], str(tmp_path / 'x'), **QUIET)
+    again = str(tmp_path / 'again')
+    _finished(again, {'qrl': [(0.5, 0.5), (0.5, 0.5)]})
+    with pytest.raises(ValueError, match="method 'qrl' is in both"):
+        compare.merge([a, again], str(tmp_path / 'x'), **QUIET)
+    with pytest.raises(ValueError, match='is a comparison folder'):
+        compare.merge([a, b], a, **QUIET)
+    with pytest.raises(ValueError, match='at least two'):
+        compare.merge([a], out, **QUIET)
+    assert cli.main(['merge', a, str(tmp_path / 'missing'), '--out', str(tmp_path / 'y')]) == 2
+    assert {f: open(os.path.join(f, 'results.json')).read() for f in (a, b)} == before  # inputs only read
+    assert not os.path.exists(tmp_path / 'x') and not os.path.exists(tmp_path / 'y')
