@@ -251,7 +251,9 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
             configs[m] = r['configs'][m]
             scoped += [o for o in r.get('overrides', []) if o.split('=', 1)[0].split(':', 1)[0] == m
                        and ':' in o.split('=', 1)[0]]
-        rows.update({k: v for k, v in r['rows'].items() if k.split('/', 1)[0] in r['methods']})
+            # the method's row, then its ablations' (results.json may hold the rows in another order)
+            rows.update({k: v for k, v in sorted(r['rows'].items(), key=lambda kv: kv[0] != m)
+                         if k.split('/', 1)[0] == m})
     result = dict(first, methods=names, rows=rows, configs=configs,
                   overrides=[o for o in first.get('overrides', []) if ':' not in o.split('=', 1)[0]] + scoped,
                   merged_from={m: os.path.abspath(f) for m, f in owner.items()})

@@ -253,7 +253,7 @@ def _finished(folder, methods_rates, sha='ab' * 32, overrides=('protocol.episode
                   configs={m: {'method': m} for m in methods_rates})
     os.makedirs(folder)
     with open(os.path.join(folder, 'results.json'), 'w') as f:
-        json.dump(result, f)
+        json.dump(result, f, sort_keys=True)  # as files.write_json: rows alphabetical, not in method order
     return result
 
 
@@ -261,17 +261,19 @@ def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
     a, b, out = (str(tmp_path / n) for n in ('a', 'b', 'out'))
     ra = _finished(a, {'aqm': [(0.9, 0.7), (1.0, 0.8)], 'qrl': [(0.2, 0.0), (0.1, 0.1)]},
                    overrides=('protocol.episodes=10', 'qrl:protocol.ablations=flat'))
-    rb = _finished(b, {'hiql': [(0.3, 0.1), (0.0, 0.2)]})
+    rb = _finished(b, {'hiql': [(0.3, 0.1), (0.0, 0.2)], 'crl': [(0.0, 0.0), (0.1, 0.1)]})
     before = {f: open(os.path.join(f, 'results.json')).read() for f in (a, b)}
     merged = compare.merge([a, b], out, **QUIET)
-    assert merged['methods'] == ['aqm', 'qrl', 'hiql'] and list(merged['rows']) == ['aqm', 'qrl', 'hiql']
+    assert merged['methods'] == ['aqm', 'qrl', 'hiql', 'crl'] and list(merged['rows']) == ['aqm', 'qrl', 'hiql', 'crl']
     assert merged['rows']['aqm'] == ra['rows']['aqm'] and merged['rows']['hiql'] == rb['rows']['hiql']
     # hiql: seed means 0.2 and 0.1, 6 of 40 pooled episodes
     h = merged['rows']['hiql']['base']
     assert h['mean'] == pytest.approx(0.15) and h['episodes_ci95'] == [pytest.approx(x) for x in stats.wilson(6, 40)]
     assert merged['overrides'] == ['protocol.episodes=10', 'qrl:protocol.ablations=flat']
-    assert merged['merged_from'] == {'aqm': os.path.abspath(a), 'qrl': os.path.abspath(a), 'hiql': os.path.abspath(b)}
+    assert merged['merged_from'] == {'aqm': os.path.abspath(a), 'qrl': os.path.abspath(a), 'hiql': os.path.abspath(b),
+                                     'crl': os.path.abspath(b)}
     table = open(os.path.join(out, 'table.md')).read()
+    assert table.index('| qrl |') < table.index('| hiql |') < table.index('| crl |')  # in method order
     assert '| aqm | 95 | 75 | **85** |' in table and '| hiql | 15 | 15 | **15** |' in table
     assert os.path.getsize(os.path.join(out, 'success.png')) > 5000
     assert json.load(open(os.path.join(out, 'results.json'))) == merged
