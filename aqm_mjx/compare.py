@@ -228,13 +228,18 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     parts = [files.read_json(os.path.join(f, 'results.json'), 'a folder written by aqm-mjx compare')
              for f in folders]
     first = parts[0]
+
+    def scope(pair: str) -> Optional[str]:  # 'gciql:alpha=0.1' -> 'gciql'; a shared override -> None
+        head = pair.split('=', 1)[0]
+        return head.split(':', 1)[0] if ':' in head else None
+
+    shared = [o for o in first.get('overrides', []) if scope(o) is None]
     for f, r in zip(folders, parts):
         if not r.get('data_sha256'):
             raise ValueError(f'{f}/results.json records no data SHA-256 (written before aqm-mjx recorded it): '
                              'its data cannot be shown to be the others\'')
         diff = [k for k in _SHARED if r.get(k) != first.get(k)]
-        shared = sorted(o for o in r.get('overrides', []) if ':' not in o.split('=', 1)[0])
-        if shared != sorted(o for o in first.get('overrides', []) if ':' not in o.split('=', 1)[0]):
+        if sorted(o for o in r.get('overrides', []) if scope(o) is None) != sorted(shared):
             diff.append('overrides')
         if diff:
             raise ValueError(f'{f} and {folders[0]} differ in ' + '; '.join(
@@ -249,13 +254,12 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
             owner[m] = f
             names.append(m)
             configs[m] = r['configs'][m]
-            scoped += [o for o in r.get('overrides', []) if o.split('=', 1)[0].split(':', 1)[0] == m
-                       and ':' in o.split('=', 1)[0]]
+            scoped += [o for o in r.get('overrides', []) if scope(o) == m]
             # the method's row, then its ablations' (results.json may hold the rows in another order)
             rows.update({k: v for k, v in sorted(r['rows'].items(), key=lambda kv: kv[0] != m)
                          if k.split('/', 1)[0] == m})
     result = dict(first, methods=names, rows=rows, configs=configs,
-                  overrides=[o for o in first.get('overrides', []) if ':' not in o.split('=', 1)[0]] + scoped,
+                  overrides=shared + scoped,
                   merged_from={m: os.path.abspath(f) for m, f in owner.items()})
     _write(out, result, log)
     return result
