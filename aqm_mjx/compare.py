@@ -41,6 +41,12 @@ from aqm_mjx import run
 DEFAULT_METHODS = ('aqm', 'gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw')
 
 
+def _scope(pair: str) -> Optional[str]:
+    """The method an override is for (``'gciql:alpha=0.1'`` -> ``'gciql'``), None for a shared one."""
+    head = pair.split('=', 1)[0]
+    return head.split(':', 1)[0] if ':' in head else None
+
+
 def method_configs(env_name: str, names: Sequence[str], preset: str, overrides: Sequence[str] = (),
                    style: Optional[str] = None) -> dict[str, RunConfig]:
     """``{method: RunConfig}`` for a comparison, every override checked before any work.
@@ -59,9 +65,9 @@ def method_configs(env_name: str, names: Sequence[str], preset: str, overrides: 
         raise ValueError(f'methods repeat: {names}')
     shared, scoped = [], {n: [] for n in names}
     for pair in overrides:
-        head = pair.split('=', 1)[0]
-        if ':' in head:
-            m, rest = pair.split(':', 1)
+        m = _scope(pair)
+        if m is not None:
+            rest = pair.split(':', 1)[1]
             if m not in scoped:
                 raise ValueError(f'override {pair!r} is for method {m!r}, which is not compared '
                                  f'(methods: {", ".join(names)})')
@@ -181,7 +187,7 @@ def _write_tables(out, spec, per_method, seed_ids, cfgs, log) -> dict:
     names = list(per_method)
     first = per_method[names[0]]
     rows = aggregate(per_method, seed_ids)
-    variant, tasks, episodes = first['variants'][0], first['tasks'], int(first['episodes'])
+    tasks, episodes = first['tasks'], int(first['episodes'])
     result = dict(spec, methods=names, tasks=tasks, episodes=episodes, variants=first['variants'], rows=rows,
                   configs={n: c.to_dict() for n, c in cfgs.items()})
     _write(out, result, log)
@@ -228,18 +234,13 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     parts = [files.read_json(os.path.join(f, 'results.json'), 'a folder written by aqm-mjx compare')
              for f in folders]
     first = parts[0]
-
-    def scope(pair: str) -> Optional[str]:  # 'gciql:alpha=0.1' -> 'gciql'; a shared override -> None
-        head = pair.split('=', 1)[0]
-        return head.split(':', 1)[0] if ':' in head else None
-
-    shared = [o for o in first.get('overrides', []) if scope(o) is None]
+    shared = [o for o in first.get('overrides', []) if _scope(o) is None]
     for f, r in zip(folders, parts):
         if not r.get('data_sha256'):
             raise ValueError(f'{f}/results.json records no data SHA-256 (written before aqm-mjx recorded it): '
                              'its data cannot be shown to be the others\'')
         diff = [k for k in _SHARED if r.get(k) != first.get(k)]
-        if sorted(o for o in r.get('overrides', []) if scope(o) is None) != sorted(shared):
+        if sorted(o for o in r.get('overrides', []) if _scope(o) is None) != sorted(shared):
             diff.append('overrides')
         if diff:
             raise ValueError(f'{f} and {folders[0]} differ in ' + '; '.join(
@@ -254,7 +255,7 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
             owner[m] = f
             names.append(m)
             configs[m] = r['configs'][m]
-            scoped += [o for o in r.get('overrides', []) if scope(o) == m]
+            scoped += [o for o in r.get('overrides', []) if _scope(o) == m]
             # the method's row, then its ablations' (results.json may hold the rows in another order)
             rows.update({k: v for k, v in sorted(r['rows'].items(), key=lambda kv: kv[0] != m)
                          if k.split('/', 1)[0] == m})
