@@ -220,15 +220,17 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     ``results.json`` must agree on the data's SHA-256, the environment, style, preset, seeds, episode key
     (``eval_seed``), layout, tasks and episodes, and on the overrides given to every method (a
     ``METHOD:`` override travels with its method); a method may appear in one folder only. Writes
-    ``OUT/results.json`` (with ``merged_from``), ``OUT/table.md`` and ``OUT/success.png``; the inputs
-    are only read. Returns the merged comparison.
+    ``OUT/results.json`` (with ``merged_from``), ``OUT/table.md`` and ``OUT/success.png`` holding
+    ``OUT``'s lock (:func:`aqm_mjx.files.run_lock`); the inputs are only read. Returns the merged
+    comparison.
     """
     folders = [os.path.normpath(f) for f in folders]
     if len(folders) < 2:
         raise ValueError(f'give at least two comparison folders to merge; got {len(folders)}')
-    if len(set(folders)) != len(folders):
+    real = [os.path.realpath(f) for f in folders]  # one folder however it is spelled
+    if len(set(real)) != len(real):
         raise ValueError(f'folders repeat: {folders}')
-    if os.path.normpath(out) in folders or os.path.exists(os.path.join(out, 'compare.json')):
+    if os.path.realpath(out) in real or os.path.exists(os.path.join(out, 'compare.json')):
         raise ValueError(f'{out} is a comparison folder; write the merged table to another --out (its own '
                          'files would be replaced)')
     parts = [files.read_json(os.path.join(f, 'results.json'), 'a folder written by aqm-mjx compare')
@@ -262,7 +264,8 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     result = dict(first, methods=names, rows=rows, configs=configs,
                   overrides=shared + scoped,
                   merged_from={m: os.path.abspath(f) for m, f in owner.items()})
-    _write(out, result, log)
+    with files.run_lock(out):  # one writer per folder, as compare
+        _write(out, result, log)
     return result
 
 

@@ -4,6 +4,8 @@ without redoing finished methods, intervals a person can recompute, and requests
 import json
 import math
 import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from aqm_mjx import cli, compare, envs, run
+from aqm_mjx import cli, compare, envs, files, run
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
 from aqm_mjx.evaluation import stats
@@ -294,8 +296,25 @@ def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
         compare.merge([a, again], str(tmp_path / 'x'), **QUIET)
     with pytest.raises(ValueError, match='is a comparison folder'):
         compare.merge([a, b], a, **QUIET)
+    with pytest.raises(ValueError, match='is a comparison folder'):  # the same folder spelled another way
+        compare.merge([a, b], os.path.relpath(b) + os.sep, **QUIET)
+    with pytest.raises(ValueError, match='folders repeat'):
+        compare.merge([a, os.path.relpath(a)], str(tmp_path / 'x'), **QUIET)
     with pytest.raises(ValueError, match='at least two'):
         compare.merge([a], out, **QUIET)
     assert cli.main(['merge', a, str(tmp_path / 'missing'), '--out', str(tmp_path / 'y')]) == 2
     assert {f: open(os.path.join(f, 'results.json')).read() for f in (a, b)} == before  # inputs only read
     assert not os.path.exists(tmp_path / 'x') and not os.path.exists(tmp_path / 'y')
+    # a second writer of OUT is refused while another process holds its lock, and writes nothing
+    held = str(tmp_path / 'held')
+    holder = subprocess.Popen([sys.executable, '-c', 'import sys, time\nfrom aqm_mjx import files\n'
+                               f'with files.run_lock({held!r}):\n    print("held", flush=True)\n    time.sleep(60)'],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == 'held'
+        with pytest.raises(files.LockedError):
+            compare.merge([a, b], held, **QUIET)
+        assert not os.path.exists(os.path.join(held, 'results.json'))
+    finally:
+        holder.kill()
+        holder.wait()
