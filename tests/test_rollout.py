@@ -78,6 +78,41 @@ def test_goal_and_start_legs_are_budgeted_by_hand():
     assert (int(b.node), int(b.prev), float(b.budget), int(b.t_edge)) == (1, START, 9.0, 0)
 
 
+def test_the_papers_rule_budgets_keypoint_edges_alone_by_hand():
+    """``edges_only`` (the paper's rule, section 4.5): the start leg s -> z_1 and the goal leg z_n -> g
+    run without a budget; a keypoint edge overruns after (1 + kappa) d steps and only that edge is
+    cut, whatever the AQM row's parallel cuts are set to (the row passes cut_slack 0)."""
+    dist, g, _ = _agent_step_case()  # z = 0, 10, 20 on a line, tau 6
+    cfg = AgentConfig(kappa=0.5, switch_radius=1.0, cut_slack=0.9)  # the AQM row's slack, not the paper row's
+    step = lambda a, x: rules.agent_step(dist, g, cfg, a, jnp.array([x]), 0.5, 0.0, True, 0.0)  # noqa: E731
+    # start leg from 4.0 to z0: the fixed rule would cut it after 6 steps (test above); here never
+    b = rules.agent_init(dist, g, jnp.array([4.0]), jnp.array([20.5]), 0.5, True, 0.0, True)
+    assert (int(b.node), int(b.prev)) == (0, START) and not np.isfinite(float(b.budget))
+    for _ in range(100):
+        b = step(b, 4.0)
+    assert int(b.pruned) == 0 and int(b.node) == 0 and not b.banned.any()
+    b = step(b, 0.3)  # z0 reached: the edge z0 -> z1 has the paper's budget 1.5 * 10
+    assert (int(b.node), int(b.prev), float(b.budget)) == (1, 0, 15.0)
+    np.testing.assert_array_equal(b.legs[0], [4.0, 101, 99, rules.LEG_START])  # 100 steps standing, 99 stalled
+    for _ in range(15):
+        b = step(b, 3.0)
+    assert int(b.pruned) == 0
+    b = step(b, 3.0)  # step 16 > 15: the one edge z0 -> z1 is cut
+    assert int(b.pruned) == 1 and int(b.removed) == 1 and not np.isfinite(float(b.w[0, 1]))
+    assert np.isfinite(np.asarray(b.w)[[1, 1, 2], [0, 2, 1]]).all()
+    # goal leg: the goal at 25 hangs off z2; at z2 the leg to g has no budget
+    a = rules.agent_init(dist, g, jnp.array([10.3]), jnp.array([25.0]), 0.5, True, 0.0, True)
+    assert (int(a.node), int(a.prev)) == (1, START) and not np.isfinite(float(a.budget))
+    a = step(a, 10.0)  # z1 reached: edge z1 -> z2, budget 15
+    assert (int(a.node), int(a.prev), float(a.budget)) == (2, 1, 15.0)
+    a = step(a, 20.0)  # z2 reached: the goal leg, unbudgeted
+    assert (int(a.node), int(a.prev)) == (-1, 2) and not np.isfinite(float(a.budget))
+    for _ in range(100):
+        a = step(a, 20.0)
+    assert int(a.pruned) == 0 and np.isfinite(float(a.to_g[2]))
+    np.testing.assert_array_equal(a.legs[:2, 3], [rules.LEG_START, rules.LEG_EDGE])
+
+
 def test_stall_rule_and_leg_log_by_hand():
     """patience 3, progress 1 on the line z = 0, 10, 20: a slow walk (0.4 per step: progress every
     third step) is never cut although it overruns the fixed budget; standing still is cut after 4
@@ -88,7 +123,7 @@ def test_stall_rule_and_leg_log_by_hand():
     assert (int(a.node), int(a.prev), float(a.budget), float(a.leg_d)) == (0, START, 3.0, 0.5)
     a = step(a, 0.2)  # z0 reached at once: start leg logged (d 0.5, 1 step, stall 0); edge 0 -> 1
     assert (int(a.node), int(a.prev), float(a.budget), float(a.leg_d), int(a.n_legs)) == (1, 0, 3.0, 10.0, 1)
-    np.testing.assert_array_equal(a.legs[0], [0.5, 1, 0])
+    np.testing.assert_array_equal(a.legs[0], [0.5, 1, 0, rules.LEG_START])
     stalls = []
     for k in range(1, 22):  # x = 0.6 .. 8.6: d to z1 = 9.4, 9.0, 8.6, 8.2 (progress), ...
         a = step(a, 0.2 + 0.4 * k)
@@ -97,7 +132,7 @@ def test_stall_rule_and_leg_log_by_hand():
     assert int(a.pruned) == 0 and int(a.t_edge) == 21 > 1.5 * 10  # the fixed budget (15) would have cut it
     a = step(a, 9.5)  # d = 0.5 <= 1: z1 reached after 22 steps, longest stall 2
     assert int(a.node) == 2 and int(a.n_legs) == 2
-    np.testing.assert_array_equal(a.legs[1], [10.0, 22, 2])
+    np.testing.assert_array_equal(a.legs[1], [10.0, 22, 2, rules.LEG_EDGE])
     np.testing.assert_array_equal(a.legs[2:], -1.0)
     for i in range(4):  # standing at 11 (d to z2 = 9): the first step sets the best, then 3 stalls
         a = step(a, 11.0)
@@ -155,6 +190,57 @@ def test_an_overrun_cuts_its_parallel_edges_by_hand(slack, cut, hop):
     batch = lambda x: jax.tree.map(lambda v: v[None], x)  # noqa: E731
     a = jax.tree.map(lambda v: v[0], jax.vmap(rules.redirect)(rules.replan(batch(a)), jnp.array([0.5])))
     assert int(a.node) == hop
+
+
+def test_cut_into_takes_every_edge_into_the_targets_neighbourhood_by_hand():
+    """``cut_into``: the overrun of A0 -> B0 at slack 0.15 (radius 1.5: B0 and B1) cuts every edge into
+    B0 and B1, from A, from B2 and from C alike, and between them; edges into A, B2 and C stay."""
+    dist, g, cfg = _ladder_case(0.15)
+    cfg = AgentConfig(kappa=0.5, switch_radius=0.5, cut_slack=0.15, cut_into=True)
+    a = rules.agent_init(dist, g, jnp.array([-2.5, 0.0]), jnp.array([22.5, 0.0]), 0.5)
+    a = rules.agent_step(dist, g, cfg, a, jnp.array([0.0, 0.0]), 0.5)
+    for _ in range(16):
+        a = rules.agent_step(dist, g, cfg, a, jnp.array([4.0, 0.0]), 0.5)
+    w0 = np.asarray(g.w)
+    expect = w0.copy()
+    for b in (3, 4):
+        for src in range(7):
+            if src != b and np.isfinite(w0[src, b]):
+                expect[src, b] = np.inf
+    np.testing.assert_array_equal(np.asarray(a.w), expect)
+    assert int(a.pruned) == 1 and int(a.removed) == int(np.isfinite(w0[:, 3:5]).sum()) - 2
+
+
+def _tick(dist, g, cfg, a, x, kappa=0.5):
+    """One control step of the decide half for one environment: step, replan, keep_route, redirect."""
+    batch = lambda v: jax.tree.map(lambda y: y[None], v)  # noqa: E731
+    new = rules.replan(batch(rules.agent_step(dist, g, cfg, a, jnp.asarray(x, jnp.float32), kappa)))
+    if cfg.keep_route:
+        new = jax.vmap(rules.keep_last_route)(batch(a), new)
+    return jax.tree.map(lambda v: v[0], jax.vmap(rules.redirect)(new, jnp.array([kappa])))
+
+
+def test_keep_route_does_not_cut_the_last_route_by_hand():
+    """On the line z0 - z1 - z2 the edge z0 -> z1 is the only way to the goal: with ``keep_route`` its
+    overrun is not cut, the leg to z1 starts again with a fresh budget, and ``kept`` counts it; in the
+    ladder, where A0 -> B1 is left, the same overrun is cut as usual."""
+    dist, g, _ = _agent_step_case()
+    cfg = AgentConfig(kappa=0.5, switch_radius=1.0, keep_route=True)
+    a = rules.agent_init(dist, g, jnp.array([0.5]), jnp.array([20.5]), 0.5)
+    a = _tick(dist, g, cfg, a, [0.2])  # z0 reached: edge z0 -> z1, budget 15
+    for k in range(1, 33):
+        a = _tick(dist, g, cfg, a, [3.0])
+        if k in (15, 31):
+            assert int(a.t_edge) == 15 and int(a.kept) == (k - 15) // 16
+    assert (int(a.kept), int(a.pruned), int(a.node), int(a.prev), int(a.t_edge)) == (2, 0, 1, 0, 0)
+    np.testing.assert_array_equal(np.asarray(a.w), np.asarray(g.w))
+    dist, g, _ = _ladder_case(0.0)
+    cfg = AgentConfig(kappa=0.5, switch_radius=0.5, keep_route=True)
+    b = rules.agent_init(dist, g, jnp.array([-2.5, 0.0]), jnp.array([22.5, 0.0]), 0.5)
+    b = _tick(dist, g, cfg, b, [0.0, 0.0])
+    for _ in range(16):
+        b = _tick(dist, g, cfg, b, [4.0, 0.0])
+    assert (int(b.kept), int(b.pruned), int(b.node)) == (0, 1, 4) and not np.isfinite(float(b.w[0, 3]))
 
 
 def test_cut_slack_must_be_below_one():

@@ -5,9 +5,10 @@ environments, with no host round trip per step.
     run = make_rollout(env, agent, AgentConfig(), steps=1000)
     out = jax.jit(run)(agent.aux, graph, episode_inputs(episode_keys(key, ids), task_ids, grids, kappa, use_graph))
 
-Each environment carries its own task, walls, budget slack, budget rule and whether it uses the
-graph, so ablations (no pruning: ``kappa = inf``; the flat policy: ``use_graph = False``; the stall
-rule: ``patience > 0``) and shifted layouts are rows of one batch.
+Each environment carries its own task, walls, budget slack, budget rule, parallel cuts and whether
+it uses the graph, so ablations (no pruning: ``kappa = inf``; the flat policy: ``use_graph = False``;
+the stall rule: ``patience > 0``; the paper's rule: ``edges_only``, ``cut_slack = 0``) and shifted
+layouts are rows of one batch.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx.agent.rules import MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, redirect, replan
+from aqm_mjx.agent.rules import (LEG_FIELDS, MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, keep_last_route,
+                                  redirect, replan)
 from aqm_mjx.interface import Agent
 from aqm_mjx.progress import EVERY, tick
 from aqm_mjx.mapping.graph import Graph
@@ -33,6 +35,9 @@ class EpisodeInputs(NamedTuple):
     kappa: jax.Array  # float32 [B]: budget slack (inf: no pruning)
     use_graph: jax.Array  # bool [B]: False: the flat policy
     patience: jax.Array  # float32 [B]: 0 the fixed budget (1 + kappa) d; > 0 the stall rule's patience
+    edges_only: jax.Array  # bool [B]: budget keypoint edges alone (the paper's rule), not start and goal legs
+    cut_slack: jax.Array  # float32 [B]: parallel cuts (0: the overrun edge alone)
+    cells: jax.Array  # int32 [B, 4]: start and goal cells (i, j, i, j) of task-0 episodes (calibration)
 
 
 def episode_keys(key: jax.Array, ids) -> jax.Array:
@@ -41,19 +46,25 @@ def episode_keys(key: jax.Array, ids) -> jax.Array:
     return jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 2))(jnp.asarray(ids, jnp.int32))
 
 
-def episode_inputs(keys, task_ids, grids, kappa, use_graph, patience=0.0) -> EpisodeInputs:
-    """:class:`EpisodeInputs` with fixed dtypes (uint32, int32, int8, float32, bool, float32), so that
-    new tasks, seeds, walls, kappas or rules never change the compiled signature. ``grids`` may be
-    one ``[H, W]`` maze, ``kappa``, ``use_graph`` and ``patience`` scalars: they are broadcast."""
+def episode_inputs(keys, task_ids, grids, kappa, use_graph, patience=0.0, edges_only=False, cut_slack=0.0,
+                   cells=None) -> EpisodeInputs:
+    """:class:`EpisodeInputs` with fixed dtypes (uint32, int32, int8, float32, bool, float32, bool,
+    float32, int32), so that new tasks, seeds, walls, kappas or rules never change the compiled
+    signature. ``grids`` may be one ``[H, W]`` maze, ``kappa``, ``use_graph``, ``patience``,
+    ``edges_only`` and ``cut_slack`` scalars: they are broadcast. ``cells`` (default zeros) are read
+    for task id 0 only."""
     task_ids = jnp.asarray(task_ids, jnp.int32)
     n = task_ids.shape[0]
     grids = jnp.asarray(grids, jnp.int8)
     if grids.ndim == 2:
         grids = jnp.broadcast_to(grids, (n,) + grids.shape)
+    cells = jnp.zeros((n, 4), jnp.int32) if cells is None else jnp.asarray(cells, jnp.int32).reshape(n, 4)
     return EpisodeInputs(keys=jnp.asarray(keys), task_ids=task_ids, grids=grids,
                          kappa=jnp.broadcast_to(jnp.asarray(kappa, jnp.float32), (n,)),
                          use_graph=jnp.broadcast_to(jnp.asarray(use_graph, bool), (n,)),
-                         patience=jnp.broadcast_to(jnp.asarray(patience, jnp.float32), (n,)))
+                         patience=jnp.broadcast_to(jnp.asarray(patience, jnp.float32), (n,)),
+                         edges_only=jnp.broadcast_to(jnp.asarray(edges_only, bool), (n,)),
+                         cut_slack=jnp.broadcast_to(jnp.asarray(cut_slack, jnp.float32), (n,)), cells=cells)
 
 
 def freeze(live: jax.Array, old, new):
@@ -93,20 +104,22 @@ def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
     def init(aux, graph, obs, goal, inputs):
         d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
         enc = jax.vmap(lambda o: agent.encode(aux, o))
-        return jax.vmap(lambda s, g, kp, u, p: agent_init(d, graph, s, g, kp, u, p))(
-            enc(obs), enc(goal), inputs.kappa, inputs.use_graph, inputs.patience)
+        return jax.vmap(lambda s, g, kp, u, p, e: agent_init(d, graph, s, g, kp, u, p, e))(
+            enc(obs), enc(goal), inputs.kappa, inputs.use_graph, inputs.patience, inputs.edges_only)
 
     def act(aux, graph, agents, obs, goal, done, t, inputs):
         d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
-        kappa, patience = inputs.kappa, inputs.patience
+        kappa, patience, edges = inputs.kappa, inputs.patience, inputs.edges_only
         enc = jax.vmap(lambda o: agent.encode(aux, o))
         # PLAN: switch, time and prune per environment, then replan where an edge was cut; an
         # environment whose episode is done (at the goal, or at its limit) keeps its agent as it
         # was, so that nothing is timed, cut or logged after the end
-        stepped = jax.vmap(lambda a, s, kp, p: agent_step(d, graph, cfg, a, s, kp, p))(agents, enc(obs), kappa, patience)
-        agents = freeze(~done, agents, stepped)
-        agents = replan(agents, slots)
-        agents = jax.vmap(redirect)(agents, kappa, patience)
+        stepped = jax.vmap(lambda a, s, kp, p, e, c: agent_step(d, graph, cfg, a, s, kp, p, e, c))(
+            agents, enc(obs), kappa, patience, edges, inputs.cut_slack)
+        new = replan(freeze(~done, agents, stepped), slots)
+        if cfg.keep_route:  # EXTENSION: a cut that leaves no route to the goal is not made
+            new = jax.vmap(keep_last_route)(agents, new)
+        agents = jax.vmap(redirect)(new, kappa, patience, edges)
         sub = jnp.where((agents.node >= 0)[:, None], graph.obs[jnp.maximum(agents.node, 0)], goal)
         # ACT
         keys_t = jax.vmap(lambda k: jax.random.fold_in(k, t))(inputs.keys[:, 1])
@@ -133,7 +146,8 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
     Returns:
         ``run(aux, graph, inputs: EpisodeInputs) -> dict`` with ``success [B]`` (at the goal at the
         last step), ``pruned [B]`` (legs overrun), ``removed [B]`` (keypoint edges cut), ``cuts [B,
-        MAX_CUTS, 2]``, ``legs [B, MAX_LEGS, 3]`` (completed legs: d, steps, longest stall; -1 padded),
+        MAX_CUTS, 2]``, ``legs [B, MAX_LEGS, LEG_FIELDS]`` (completed legs: d, steps, longest stall,
+        kind; -1 padded),
         ``n_legs [B]``, ``xy [T, B, 2]``, ``node [T, B]``
         and ``goal_xy [B, 2]``.
     """
@@ -141,7 +155,7 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
     plans = agent.dist is not None
 
     def run(aux: Any, graph: Graph, inputs: EpisodeInputs):
-        states = jax.vmap(env.reset)(inputs.keys[:, 0], inputs.task_ids, inputs.grids)
+        states = jax.vmap(env.reset)(inputs.keys[:, 0], inputs.task_ids, inputs.grids, inputs.cells)
         agents = decide.init(aux, graph, states.obs, states.goal, inputs)
         no_node = jnp.full(inputs.task_ids.shape, -1, jnp.int32)
 
@@ -166,11 +180,11 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
 
 def plan_outputs(agents, b: int, xp=np) -> dict:
     """The agent-state outputs of a rollout: ``pruned [B]``, ``removed [B]``, ``cuts [B, MAX_CUTS, 2]``,
-    ``legs [B, MAX_LEGS, 3]``, ``n_legs [B]`` from ``agents``, or nothing pruned, cut or logged for an agent
+    ``legs [B, MAX_LEGS, LEG_FIELDS]``, ``n_legs [B]`` from ``agents``, or nothing pruned, cut or logged for an agent
     without a quasimetric (``agents == ()``). ``xp``: ``jnp`` inside a program, ``np`` on the host."""
     if isinstance(agents, tuple):
         return dict(pruned=xp.zeros((b,), xp.int32), removed=xp.zeros((b,), xp.int32),
-                    cuts=xp.full((b, MAX_CUTS, 2), -1, xp.int32), legs=xp.full((b, MAX_LEGS, 3), -1.0, xp.float32),
+                    cuts=xp.full((b, MAX_CUTS, 2), -1, xp.int32), legs=xp.full((b, MAX_LEGS, LEG_FIELDS), -1.0, xp.float32),
                     n_legs=xp.zeros((b,), xp.int32))
     return {k: xp.asarray(getattr(agents, k)) for k in ('pruned', 'removed', 'cuts', 'legs', 'n_legs')}
 
@@ -193,7 +207,8 @@ def make_host_rollout(envs, agent: Agent, cfg: AgentConfig, steps: int, progress
 
     def run(aux: Any, graph, inputs: EpisodeInputs) -> dict:
         seeds = np.asarray(seed_of(inputs.keys[:, 0]))
-        obs, goal, goal_xy = envs.reset(seeds, np.asarray(inputs.task_ids), np.asarray(inputs.grids))
+        obs, goal, goal_xy = envs.reset(seeds, np.asarray(inputs.task_ids), np.asarray(inputs.grids),
+                                        np.asarray(inputs.cells))
         b = len(seeds)
         goal_d = jnp.asarray(goal)
         agents = init(aux, graph, jnp.asarray(obs), goal_d, inputs)

@@ -8,21 +8,24 @@ untraversable in the environment's own copy of the graph and replan (paper secti
   From a reached keypoint the agent re-chooses the best last keypoint and steps to the next hop of
   its Floyd-Warshall path; at the last keypoint the target becomes the goal.
 - Budgets: every leg of the path (s, z_1, ..., z_n, g) gets ``B = (1 + kappa) d(from, to)`` control
-  steps (the paper's rule, ``patience = 0``), or, with ``patience > 0``, the stall rule: a leg
+  steps (the fixed rule, ``patience = 0``), or, with ``patience > 0``, the stall rule: a leg
   overruns after ``patience`` consecutive steps in which d(s, target) did not fall ``progress``
-  below its best on that leg, however long the leg takes while it makes progress. A keypoint edge
+  below its best on that leg, however long the leg takes while it makes progress. With
+  ``edges_only`` (per environment) only keypoint-to-keypoint edges are budgeted, as section 4.5
+  states it: the start leg s -> z_1 and the goal leg z_n -> g run unbudgeted. The paper's rule is
+  the fixed rule with ``edges_only`` and no parallel cuts (``protocol`` row ``paper=X``). A keypoint edge
   that overruns is set to ``inf`` in the environment's weights, a goal leg cuts that goal
   attachment, a start leg bans that entry keypoint and re-attaches from where the agent stands.
   After a prune the agent replans and heads from where it is to the next hop after the pruned leg's
   start. ``kappa = inf`` disables pruning under either rule.
-- Parallel cuts (``cut_slack`` > 0, off by default: the paper cuts the one edge): a keypoint edge
+- Parallel cuts (``cut_slack`` > 0, per environment; 0 is the paper's single cut): a keypoint edge
   z_i -> z_j that overruns also takes with it every edge z_a -> z_b that starts within ``cut_slack
   * w(i, j)`` of z_i and ends within that of z_j (map distances, either way). The overrun says z_j's
   side cannot be reached from z_i's in the leg's time: edges between the same two neighbourhoods
   cross the same blockage. Without them a closed corridor crossed by k such edges costs k overruns,
   one budget each (RESULTS.md, section 9).
 - Leg log: every leg that ends at its keypoint is recorded as (d(from, to), steps taken, longest
-  stall) in ``legs`` (the first :data:`MAX_LEGS`; ``n_legs`` counts all), the measurement that
+  stall, kind) in ``legs`` (kind :data:`LEG_START`, :data:`LEG_EDGE` or :data:`LEG_GOAL`) (the first :data:`MAX_LEGS`; ``n_legs`` counts all), the measurement that
   calibrates either rule (:mod:`aqm_mjx.evaluation.calibration`).
 - ``use_graph=False`` is the flat policy: the target is always the goal.
 """
@@ -44,6 +47,8 @@ from aqm_mjx.mapping.graph import Graph
 
 MAX_CUTS = 16  # pruned edges remembered per environment for plots (all are counted in ``pruned``)
 MAX_LEGS = 32  # completed legs logged per environment (all are counted in ``n_legs``)
+LEG_START, LEG_EDGE, LEG_GOAL = 0, 1, 2  # the kinds of a leg (4th column of the leg log)
+LEG_FIELDS = 4  # (d(from, to), steps, longest stall, kind)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,9 +64,14 @@ class AgentConfig:
                              'many consecutive steps without progress in d(s, target)')
     progress: float = option(1.0, 'stall rule: a step makes progress when d(s, target) falls this far below its best '
                              'on the leg (units of d: control steps)')
-    cut_slack: float = option(0.0, "0: an overrun cuts its one edge (the paper); in (0, 1): it also cuts the "
-                              'edges parallel to it, those whose ends lie within cut_slack times the leg of its '
-                              'ends (RESULTS.md, section 9)')
+    cut_slack: float = option(0.0, "the AQM row's parallel cuts. 0: an overrun cuts its one edge (the paper); in "
+                              '(0, 1): it also cuts the edges parallel to it, those whose ends lie within cut_slack '
+                              'times the leg of its ends (RESULTS.md, section 9)')
+    cut_into: bool = option(False, "with parallel cuts: an overrun of z_i -> z_j cuts every edge into z_j's "
+                            "neighbourhood, from anywhere, not only from z_i's (its keypoints are taken as unreachable)")
+    keep_route: bool = option(False, 'an overrun whose cut would leave no route to the goal is not cut: the leg '
+                              'starts again with a fresh budget (the edge may be traversable after all, and it is the '
+                              'only way left)')
     replan_slots: int = option(0, 'pruning environments replanned per Floyd-Warshall pass (speed only); '
                                '0: 8 on a CPU, 256 elsewhere')
 
@@ -116,56 +126,65 @@ class AgentState:
     best: jax.Array  # float32 the lowest d(s, target) on this leg that counted as progress (inf at its start)
     stall: jax.Array  # int32 consecutive steps without progress on this leg
     max_stall: jax.Array  # int32 the longest such run on this leg
-    legs: jax.Array  # float32 [MAX_LEGS, 3] completed legs: (d(from, to), steps, longest stall); -1 padded
+    legs: jax.Array  # float32 [MAX_LEGS, LEG_FIELDS] completed legs: (d(from, to), steps, longest stall, kind); -1 padded
     n_legs: jax.Array  # int32 legs completed (all of them; the first MAX_LEGS are in ``legs``)
     pruned: jax.Array  # int32 legs marked untraversable so far (edges, goal and start attachments)
     removed: jax.Array  # int32 keypoint edges set to inf so far (overrun edges; with cut_slack, their parallels)
     cuts: jax.Array  # int32 [MAX_CUTS, 2] the first MAX_CUTS pruned keypoint edges (i, j), -1 padded (plots)
     needs_replan: jax.Array  # bool: w or to_g changed this step
+    kept: jax.Array  # int32 overruns not cut because their cut would have left no route (keep_route)
 
 
-def leg_budget(leg_d: jax.Array, kappa: jax.Array, patience: jax.Array) -> jax.Array:
-    """A leg's budget: ``(1 + kappa) leg_d`` steps (``patience`` 0, the paper's rule) or ``patience``
-    stalled steps (the stall rule); ``inf`` when ``kappa`` is or the leg is unbudgeted (``leg_d`` inf)."""
+def leg_budget(leg_d: jax.Array, kappa: jax.Array, patience: jax.Array, edge: jax.Array = True,
+               edges_only: jax.Array = False) -> jax.Array:
+    """A leg's budget: ``(1 + kappa) leg_d`` steps (``patience`` 0, the fixed rule) or ``patience``
+    stalled steps (the stall rule); ``inf`` when ``kappa`` is, when the leg is unbudgeted (``leg_d``
+    inf), or when ``edges_only`` and the leg is not a keypoint edge (``edge`` False: a start or goal leg)."""
     fixed = (1.0 + kappa) * leg_d
     stall = jnp.where(jnp.isfinite(kappa) & jnp.isfinite(leg_d), patience, jnp.inf)
-    return jnp.where(patience > 0, stall, fixed).astype(jnp.float32)
+    budget = jnp.where(patience > 0, stall, fixed)
+    return jnp.where(edges_only & ~edge, jnp.inf, budget).astype(jnp.float32)
 
 
 def parallel_edges(dist: jax.Array, w: jax.Array, i: jax.Array, j: jax.Array, leg: jax.Array,
-                   slack: float) -> jax.Array:
+                   slack, into: bool = False) -> jax.Array:
     """The edges an overrun of ``z_i -> z_j`` (length ``leg``) cuts: bool ``[K, K]``.
 
-    ``slack`` 0 (static): the edge (i, j) alone. ``slack`` in (0, 1): also every edge (a, b) whose
-    start lies within ``slack * leg`` of z_i and whose end lies within ``slack * leg`` of z_j, in map
-    distance either way (``dist``: map distances ``[K, K]``, ``w``: edge weights ``[K, K]``).
-    ``slack < 1`` keeps the edges out of z_j and into z_i (``dist[i, j] = leg``) uncut."""
+    ``slack`` 0: the edge (i, j) alone. ``slack`` in (0, 1): also every edge (a, b) whose start lies
+    within ``slack * leg`` of z_i and whose end lies within ``slack * leg`` of z_j, in map distance
+    either way (``dist``: map distances ``[K, K]``, ``w``: edge weights ``[K, K]``). ``slack < 1``
+    keeps the edges out of z_j and into z_i (``dist[i, j] = leg``) uncut. ``slack`` may be traced
+    (a per-environment value); a Python 0 skips the neighbourhoods at trace time. ``into`` (static):
+    the edges into z_j's neighbourhood from every keypoint, not only from z_i's."""
     k = w.shape[0]
     one = (jnp.arange(k)[:, None] == i) & (jnp.arange(k)[None, :] == j)
-    if not slack:
+    if isinstance(slack, (int, float)) and not slack:
         return one
     lim = slack * leg
-    near_i = jnp.minimum(dist[i], dist[:, i]) <= lim  # [K] starts next to z_i
+    near_i = (jnp.minimum(dist[i], dist[:, i]) <= lim) | into  # [K] starts next to z_i (with into: any)
     near_j = jnp.minimum(dist[j], dist[:, j]) <= lim  # [K] ends next to z_j
-    return one | (near_i[:, None] & near_j[None, :] & jnp.isfinite(w))
+    off = ~jnp.eye(k, dtype=bool)  # a keypoint's zero-weight edge to itself is never cut
+    return one | ((slack > 0) & near_i[:, None] & near_j[None, :] & jnp.isfinite(w) & off)
 
 
-def _entry(a_dist: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Array, kappa, patience) -> tuple:
+def _entry(a_dist: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Array, kappa, patience,
+           edges_only=False) -> tuple:
     """First target of the best plan, its start-leg budget and length: ``(node, prev, budget, leg_d)``."""
     first = planning.plan(a_dist, from_s, to_g, direct).first
     on_graph = first >= 0
     leg_d = jnp.where(on_graph, from_s[jnp.maximum(first, 0)], jnp.inf).astype(jnp.float32)
     return (first.astype(jnp.int32), jnp.where(on_graph, START, -1).astype(jnp.int32),
-            leg_budget(leg_d, kappa, patience), leg_d)
+            leg_budget(leg_d, kappa, patience, False, edges_only), leg_d)
 
 
 def agent_init(dist: Callable, graph: Graph, s: jax.Array, g: jax.Array, kappa: jax.Array,
-               use_graph: jax.Array = True, patience: jax.Array = 0.0) -> AgentState:
+               use_graph: jax.Array = True, patience: jax.Array = 0.0, edges_only: jax.Array = False) -> AgentState:
     """Plan from latent ``s [L]`` to latent ``g [L]`` on ``graph`` (one environment); the start leg's
-    budget uses ``kappa`` and ``patience`` (per environment: an ablation is a row of the batch)."""
+    budget uses ``kappa``, ``patience`` and ``edges_only`` (per environment: an ablation is a row of
+    the batch)."""
     d_kk, nxt = planning.floyd_warshall(graph.w)
     from_s, to_g, direct = planning.attach(dist, graph.z, graph.mask, s, g, graph.tau)
-    node, prev, budget, leg_d = _entry(d_kk, from_s, to_g, direct, kappa, patience)
+    node, prev, budget, leg_d = _entry(d_kk, from_s, to_g, direct, kappa, patience, edges_only)
     node = jnp.where(use_graph, node, -1).astype(jnp.int32)
     prev = jnp.where(use_graph, prev, -1).astype(jnp.int32)
     budget = jnp.where(use_graph, budget, jnp.inf).astype(jnp.float32)
@@ -174,36 +193,40 @@ def agent_init(dist: Callable, graph: Graph, s: jax.Array, g: jax.Array, kappa: 
     return AgentState(w=graph.w, dist=d_kk, nxt=nxt.astype(jnp.int32), to_g=to_g, goal=g, banned=jnp.zeros(k, bool),
                       node=node, prev=prev, t_edge=jnp.int32(0), budget=budget, leg_d=leg_d,
                       best=jnp.float32(jnp.inf), stall=jnp.int32(0), max_stall=jnp.int32(0),
-                      legs=jnp.full((MAX_LEGS, 3), -1.0, jnp.float32), n_legs=jnp.int32(0), pruned=jnp.int32(0),
-                      removed=jnp.int32(0), cuts=jnp.full((MAX_CUTS, 2), -1, jnp.int32), needs_replan=jnp.bool_(False))
+                      legs=jnp.full((MAX_LEGS, LEG_FIELDS), -1.0, jnp.float32), n_legs=jnp.int32(0), pruned=jnp.int32(0),
+                      removed=jnp.int32(0), cuts=jnp.full((MAX_CUTS, 2), -1, jnp.int32), needs_replan=jnp.bool_(False),
+                      kept=jnp.int32(0))
 
 
-def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array, patience: jax.Array) -> tuple:
+def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array, patience: jax.Array, edges_only=False) -> tuple:
     """From keypoint ``k``: ``(hop, prev, budget, leg_d)``. The hop is the next keypoint towards the
-    best last keypoint, or -1 (the goal) when ``k`` is that keypoint (a goal leg budgeted by
-    ``to_g[k]``) or when no path is left (unbudgeted, ``prev`` -1)."""
+    best last keypoint (:func:`aqm_mjx.agent.plan.next_subgoal`), or -1 (the goal) when ``k`` is that
+    keypoint (a goal leg budgeted by ``to_g[k]``) or when no path is left (unbudgeted, ``prev`` -1)."""
     total = a.dist[k] + a.to_g
     last = jnp.argmin(total).astype(jnp.int32)
     stuck = ~jnp.isfinite(total[last])
-    hop = jnp.where((k == last) | stuck, -1, a.nxt[k, last]).astype(jnp.int32)
+    hop = jnp.where(stuck, -1, planning.next_subgoal(a.nxt, k, last)).astype(jnp.int32)
     leg = jnp.where(stuck, jnp.inf, jnp.where(hop >= 0, a.w[k, jnp.maximum(hop, 0)], a.to_g[k])).astype(jnp.float32)
-    return hop, jnp.where(stuck, -1, k).astype(jnp.int32), leg_budget(leg, kappa, patience), leg
+    return hop, jnp.where(stuck, -1, k).astype(jnp.int32), leg_budget(leg, kappa, patience, hop >= 0, edges_only), leg
 
 
 def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
-               kappa: jax.Array, patience: jax.Array = 0.0) -> AgentState:
+               kappa: jax.Array, patience: jax.Array = 0.0, edges_only: jax.Array = False,
+               cut_slack=None) -> AgentState:
     """Update one environment's target for the current latent ``s [L]`` (switch, time, prune, log).
 
     On a keypoint edge or goal leg overrun the target points back at the leg's start keypoint,
     unbudgeted; :func:`replan` and :func:`redirect` then choose the next hop from there. On a start
     leg overrun the agent re-attaches from ``s`` without the banned entries. ``patience`` > 0 runs
-    the stall rule (``cfg.progress`` is its progress threshold).
+    the stall rule (``cfg.progress`` is its progress threshold); ``edges_only`` budgets keypoint
+    edges alone; ``cut_slack`` (default ``cfg.cut_slack``) sets the parallel cuts.
     """
+    cut_slack = cfg.cut_slack if cut_slack is None else cut_slack
     k = jnp.maximum(a.node, 0)
     d_node = dist(s, graph.z[k])
     reached = (a.node >= 0) & (d_node <= cfg.switch_radius)
     # SWITCH: from the reached keypoint, the next hop of the best path
-    hop, hop_prev, hop_budget, hop_d = _next_leg(a, k, kappa, patience)
+    hop, hop_prev, hop_budget, hop_d = _next_leg(a, k, kappa, patience, edges_only)
     # PROGRESS on the leg (the stall rule's clock; logged for both rules)
     d_target = jnp.where(a.node >= 0, d_node, dist(s, a.goal))
     progressed = d_target < a.best - cfg.progress
@@ -215,13 +238,14 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     over = ~reached & jnp.where(patience > 0, stall > a.budget, t > a.budget)
     # LOG the leg that ends here
     logged = reached & (a.prev != -1)
-    row = jnp.stack([a.leg_d, t.astype(jnp.float32), max_stall.astype(jnp.float32)])
+    kind = jnp.where(a.prev == START, LEG_START, jnp.where(a.node >= 0, LEG_EDGE, LEG_GOAL))
+    row = jnp.stack([a.leg_d, t.astype(jnp.float32), max_stall.astype(jnp.float32), kind.astype(jnp.float32)])
     legs = a.legs.at[jnp.where(logged, a.n_legs, MAX_LEGS)].set(row, mode='drop')
     edge_over = over & (a.prev >= 0) & (a.node >= 0)
     goal_over = over & (a.prev >= 0) & (a.node < 0)
     start_over = over & (a.prev == START) & (a.node >= 0)
     i, j = jnp.maximum(a.prev, 0), k
-    cut = parallel_edges(a.dist, a.w, i, j, a.leg_d, cfg.cut_slack) & edge_over
+    cut = parallel_edges(a.dist, a.w, i, j, a.leg_d, cut_slack, cfg.cut_into) & edge_over
     w = jnp.where(cut, jnp.inf, a.w)
     to_g = jnp.where(goal_over, a.to_g.at[i].set(jnp.inf), a.to_g)
     banned = a.banned | (start_over & (jnp.arange(a.banned.shape[0]) == k))
@@ -231,7 +255,7 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     # re-attach from here (used on a start-leg overrun only; 2 K + 2 distances per step)
     from_s = planning.attach_start(dist, graph.z, graph.mask & ~banned, s, graph.tau)
     direct = planning.direct_edge(dist, s, a.goal, graph.tau)
-    e_node, e_prev, e_budget, e_d = _entry(a.dist, from_s, to_g, direct, kappa, patience)
+    e_node, e_prev, e_budget, e_d = _entry(a.dist, from_s, to_g, direct, kappa, patience, edges_only)
     back = edge_over | goal_over
     node = jnp.where(reached, hop, jnp.where(back, a.prev, jnp.where(start_over, e_node, a.node)))
     prev = jnp.where(reached, hop_prev, jnp.where(back, -1, jnp.where(start_over, e_prev, a.prev)))
@@ -249,11 +273,11 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
                      removed=a.removed + jnp.sum(cut & jnp.isfinite(a.w)).astype(jnp.int32), needs_replan=back)
 
 
-def redirect(a: AgentState, kappa: jax.Array, patience: jax.Array = 0.0) -> AgentState:
+def redirect(a: AgentState, kappa: jax.Array, patience: jax.Array = 0.0, edges_only: jax.Array = False) -> AgentState:
     """After a prune and :func:`replan`: from the pruned leg's start z_i, take the next hop of the
     new best path straight away (a budgeted leg from z_i), rather than walking back to z_i."""
     i = jnp.maximum(a.node, 0)  # agent_step pointed node back at z_i
-    hop, prev, budget, leg_d = _next_leg(a, i, kappa, patience)
+    hop, prev, budget, leg_d = _next_leg(a, i, kappa, patience, edges_only)
     go = a.needs_replan
     return a.replace(node=jnp.where(go, hop, a.node).astype(jnp.int32),
                      prev=jnp.where(go, prev, a.prev).astype(jnp.int32),
@@ -262,6 +286,24 @@ def redirect(a: AgentState, kappa: jax.Array, patience: jax.Array = 0.0) -> Agen
                      best=jnp.where(go, jnp.inf, a.best).astype(jnp.float32),
                      stall=jnp.where(go, 0, a.stall).astype(jnp.int32),
                      max_stall=jnp.where(go, 0, a.max_stall).astype(jnp.int32))
+
+
+def has_route(a: AgentState) -> jax.Array:
+    """bool: after a prune and :func:`replan`, a path is left from the pruned leg's start z_i (where
+    :func:`agent_step` pointed ``node``) to the goal."""
+    i = jnp.maximum(a.node, 0)
+    return jnp.isfinite(jnp.min(a.dist[i] + a.to_g))
+
+
+def keep_last_route(old: AgentState, new: AgentState) -> AgentState:
+    """``keep_route``: an environment whose prune this step left no route to the goal (``new``, after
+    :func:`replan`) takes back ``old``'s graph and leg, with the leg's clock started again; it counts
+    the overrun in ``kept``, not in ``pruned``. Others keep ``new``."""
+    lost = new.needs_replan & ~has_route(new)
+    restart = old.replace(t_edge=jnp.zeros_like(old.t_edge), best=jnp.full_like(old.best, jnp.inf),
+                          stall=jnp.zeros_like(old.stall), max_stall=jnp.zeros_like(old.max_stall),
+                          needs_replan=jnp.zeros_like(old.needs_replan), kept=old.kept + 1)
+    return jax.tree.map(lambda r, n: jnp.where(lost, r, n), restart, new)
 
 
 def replan(a: AgentState, slots: int = 8) -> AgentState:
