@@ -36,7 +36,8 @@ SECTIONS = ('map', 'agent', 'protocol')  # the sections beside train, whose fiel
 PRESETS = {
     # tests and notebooks: seconds on a CPU
     'ci': dict(train='ci', map=dict(delta=0.5, max_keypoints=32, candidates=400),
-               agent=dict(kappa=0.0, switch_radius=0.6), protocol=dict(episodes=2, horizon=60, envs=64)),
+               agent=dict(kappa=0.0, switch_radius=0.6),
+               protocol=dict(episodes=2, horizon=60, envs=64, calibration_episodes=20)),
     # minutes on a 2-core CPU; map and agent values measured at this scale (RESULTS.md sections 3-4); the
     # AQM row on the stall rule calibrated at 0.5% false alarms with parallel cuts 0.6, the setting that met
     # issue 17's three points on antmaze-medium (RESULTS.md section 9; the paper's single cut: cut_slack=0)
@@ -149,10 +150,11 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
     learner = methods.get(cfg.method).make(cfg.train, env.obs_size, env.action_size)
     agent = learner.agent()  # parameters come from training, inside run
     episodes = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=agent.plans,
-                                   patience=cfg.agent.patience)
+                                   patience=cfg.agent.patience, cut_slack=cfg.agent.cut_slack)
     rollout = make_rollout(env, agent, cfg.agent, episodes.steps)
     rule = cfg.protocol.calibrate if agent.plans else 'none'
-    if rule != 'none':  # the calibration pass: no pruning, training layout, its own episodes
+    calibrates = agent.plans and proto.needs_calibration(cfg.protocol)
+    if calibrates:  # the calibration pass: no pruning, training layout, cells no task uses, its own key
         cal_episodes = proto.calibration_episodes(env, cfg.protocol)
         aqm_rows = episodes.table.agent == 0  # the AQM row is the first agent of the table
 
@@ -168,13 +170,16 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         else:
             graph, count, overflow = None, jnp.int32(0), jnp.bool_(False)
         inputs, cal = proto.table_inputs(episodes, k_eval), {}
-        if rule != 'none':  # CALIBRATE: the AQM row's budget from the legs of a no-pruning pass
+        if calibrates:  # CALIBRATE: the budgets from the legs of a no-pruning pass
             c = calibration.calibrate(rollout(params, graph, proto.table_inputs(
                 cal_episodes, jax.random.fold_in(k_eval, proto.CALIBRATION_FOLD)))['legs'], cfg.protocol.false_alarm)
             kappa, patience = calibration.budget(c, rule, cfg.agent.kappa, cfg.agent.patience)
+            budgets = calibration.row_budgets(c, cfg.agent.kappa, cfg.agent.patience)
+            inputs = proto.table_inputs(episodes, k_eval, budgets=budgets)
             inputs = inputs._replace(kappa=jnp.where(aqm_rows, kappa, inputs.kappa),
                                      patience=jnp.where(aqm_rows, patience, inputs.patience))
-            cal = dict(calibration=dict(kappa=kappa, patience=patience, legs=c['legs']))
+            cal = dict(calibration=dict(kappa=kappa, patience=patience, kappa_edges=budgets['paper'][0],
+                                        legs=c['legs']))
         # EVALUATE: every agent x layout x task x episode in one batch
         out = rollout(params, graph, inputs)
         success = out['success'] > 0

@@ -22,7 +22,7 @@ from aqm_mjx.data import collect
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, report
-from aqm_mjx.evaluation.protocol import plan_episodes
+from aqm_mjx.evaluation.protocol import needs_calibration, plan_episodes
 from aqm_mjx.evaluation.evaluate import calibration_pass, device_mesh, evaluate, make_program, put_global
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import trimmed_map
@@ -125,13 +125,14 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
     programs = {} if owned else programs
     program = _program(programs, trained, env, cfg, variants)
     try:
-        agent_cfg, cal = cfg.agent, None
-        if agent.plans and cfg.protocol.calibrate != 'none':
+        agent_cfg, cal, budgets = cfg.agent, None, None
+        if agent.plans and needs_calibration(cfg.protocol):
             cal = calibration_pass(env, agent, graph, cfg.agent, cfg.protocol, k_eval, layout=train_layout,
                                    program=program)
-            agent_cfg = dataclasses.replace(cfg.agent, kappa=cal['kappa'], patience=cal['patience'])
+            agent_cfg, budgets = dataclasses.replace(cfg.agent, kappa=cal['kappa'], patience=cal['patience']), cal['budgets']
             log(calibration_line(cal, cfg.agent))
-        res = evaluate(env, agent, graph, agent_cfg, cfg.protocol, variants, key=k_eval, program=program)
+        res = evaluate(env, agent, graph, agent_cfg, cfg.protocol, variants, key=k_eval, program=program,
+                       budgets=budgets)
     finally:
         if owned:
             for p in programs.values():
@@ -150,14 +151,18 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
 
 def calibration_line(cal: dict, agent_cfg) -> str:
     """One line on what a calibration pass set (or why it set nothing)."""
-    where = f'calibration pass: {cal["episodes"]} episodes without pruning, {cal["legs"]} legs completed'
+    where = (f'calibration pass: {cal["episodes"]} episodes without pruning between cells no task uses, '
+             f'{cal["legs"]} legs completed')
     if not cal['calibrated']:
         return (f'warning: {where}: nothing to calibrate from; AQM keeps kappa {agent_cfg.kappa:g}, '
                 f'patience {agent_cfg.patience:g}')
     q = f'{cal["false_alarm"]:.1%} false alarms'
+    paper = f'; the paper\'s rule on keypoint edges: kappa {cal["kappa_edges"]:g}'
     if cal['rule'] == 'stall':
-        return f'{where}: AQM row on the stall rule, patience {cal["patience"]:g} steps ({q})'
-    return f'{where}: AQM row on the fixed rule, kappa {cal["kappa"]:g} ({q})'
+        return f'{where}: AQM row on the stall rule, patience {cal["patience"]:g} steps ({q}){paper}'
+    if cal['rule'] == 'fixed':
+        return f'{where}: AQM row on the fixed rule, kappa {cal["kappa"]:g} ({q}){paper}'
+    return f'{where} ({q}){paper}'
 
 
 def prepare_evaluation(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], shift: str, overrides):
@@ -244,8 +249,9 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
             table[f'{label}/{agent_name}'] = res.summary[agent_name]
     env, variants = prepared[0][0], prepared[0][1]
     first = list(variants)[0]
-    combined = dict(env=env.name, seed=seed, episodes=prepared[0][2].protocol.episodes, checkpoints=per,
-                    tasks=res.tasks, variants=list(variants), summary=table)
+    combined = dict(env=env.name, seed=seed, episodes=prepared[0][2].protocol.episodes,
+                    split=prepared[0][2].protocol.split, checkpoints=per, tasks=res.tasks, variants=list(variants),
+                    summary=table, config=prepared[0][2].to_dict())
     files.write_json(os.path.join(out, 'results.json'), combined, makedirs=True)
     plots.success_bars(table, first, res.tasks, os.path.join(out, 'success.png'),
                        title=f'{env.name} ({first}): every checkpoint on the same episodes')

@@ -75,8 +75,26 @@ def test_config_and_episode_table():
     assert np.bincount(t.group).tolist() == [5] * (4 * 2 * 2) and t.group[5 * 3] == 3
     assert t.patience.tolist() == [0.0] * len(t.task)  # the fixed rule unless asked
     stall = protocol.agent_specs(0.5, ('stall=40', 'no-pruning'), patience=25.0)
-    assert stall == [('aqm', 0.5, True, 25.0), ('stall=40', 0.5, True, 40.0), ('no-pruning', np.inf, True, 0.0)]
+    assert [s[:4] for s in stall] == [('aqm', 0.5, True, 25.0), ('stall=40', 0.5, True, 40.0),
+                                      ('no-pruning', np.inf, True, 0.0)]
     assert protocol.episode_table(stall, 1, [1], 2).patience.tolist() == [25, 25, 40, 40, 0, 0]
+    # the paper's rule: keypoint edges alone, one cut, at a fixed kappa or the one calibrated on edges;
+    # the AQM row's parallel cuts go to its own ablations (kappa=, stall=) but never to the paper's
+    rows = protocol.agent_specs(1.0, ('paper=0.25', 'paper=cal', 'kappa=2', 'no-pruning'), patience=30.0,
+                                cut_slack=0.6)
+    assert [(r.name, r.kappa, r.patience, r.edges_only, r.cut_slack, r.calibrated) for r in rows] == [
+        ('aqm', 1.0, 30.0, False, 0.6, ''), ('paper=0.25', 0.25, 0.0, True, 0.0, ''),
+        ('paper=cal', 1.0, 0.0, True, 0.0, 'paper'), ('kappa=2', 2.0, 0.0, False, 0.6, ''),
+        ('no-pruning', np.inf, 0.0, False, 0.0, '')]
+    t = protocol.episode_table(rows, 1, [1], 1)
+    assert t.edges_only.tolist() == [False, True, True, False, False]
+    assert t.calibrated.tolist() == [0, 0, protocol.CALIBRATED.index('paper'), 0, 0]
+    eps = protocol.Episodes({'base': mazes.layout('medium')}, mazes.layout('medium')[None], [1], rows, t, 10)
+    inputs = protocol.table_inputs(eps, jax.random.PRNGKey(0), budgets=dict(paper=(3.5, 0.0), stall=(9.0, 9.0)))
+    np.testing.assert_allclose(inputs.kappa, [1.0, 0.25, 3.5, 2.0, np.inf])  # only the paper=cal row takes it
+    np.testing.assert_allclose(inputs.cut_slack, [0.6, 0, 0, 0.6, 0])
+    assert protocol.needs_calibration(protocol.ProtocolConfig(ablations=('paper=cal',)))
+    assert not protocol.needs_calibration(protocol.ProtocolConfig(ablations=('paper=1',)))
     for bad, msg in ((dict(ablations=('greedy',)), 'unknown ablation'), (dict(ablations=('kappa=x',)), 'number'),
                      (dict(episodes=0), 'episodes'), (dict(ablations=('flat', 'flat')), 'repeat'),
                      (dict(horizon=-1), 'horizon'), (dict(ablations=('stall=0',)), 'patience must be > 0'),
@@ -187,6 +205,73 @@ def test_calibration_by_hand():
         assert int(e['legs']) == 0 and np.isnan(float(e['kappa'])) and np.isnan(float(e['patience']))
 
 
+def test_calibration_never_draws_an_evaluation_task_or_key(monkeypatch):
+    """The calibration pass runs between cells of the training layout that no evaluation task starts
+    or ends in, at least MIN_PAIR_CELLS BFS steps apart, on keys that are neither split's; the pass
+    hands exactly these episodes and that key to the evaluation (checked on its inputs)."""
+    env = envs.make('pointmaze-medium')
+    p = protocol.ProtocolConfig(episodes=20, calibrate='stall', calibration_episodes=300)
+    cal = protocol.calibration_episodes(env, p)
+    key = jax.random.PRNGKey(7)
+    inputs = protocol.table_inputs(cal, jax.random.fold_in(key, protocol.CALIBRATION_FOLD))
+    assert (np.asarray(inputs.task_ids) == 0).all() and np.isinf(np.asarray(inputs.kappa)).all()
+    used = {t.init_ij for t in mazes.tasks('medium')} | {t.goal_ij for t in mazes.tasks('medium')}
+    cells = np.asarray(inputs.cells)
+    layout = mazes.layout('medium')
+    for c in cells:
+        a, b = (int(c[0]), int(c[1])), (int(c[2]), int(c[3]))
+        assert a not in used and b not in used and layout[a] == 0 and layout[b] == 0
+        assert mazes.bfs_from(layout, a)[b] >= protocol.MIN_PAIR_CELLS
+    assert len({tuple(c) for c in cells.tolist()}) > 150  # many pairs, not a handful
+    # every pair of the maze could be drawn; none is an evaluation task's
+    pairs = {tuple(x) for x in protocol.calibration_pairs(layout, 'medium').tolist()}
+    assert not pairs & {t.init_ij + t.goal_ij for t in mazes.tasks('medium')}
+    # no calibration episode shares a key with an evaluation episode of either split
+    ev = protocol.plan_episodes(env, p, 1.0)
+    cal_keys = {k.tobytes() for k in np.asarray(inputs.keys)}
+    for split in protocol.SPLITS:
+        ev_keys = {k.tobytes() for k in np.asarray(protocol.table_inputs(ev._replace(split=split), key).keys)}
+        assert not cal_keys & ev_keys
+    dev, rep = (np.asarray(protocol.table_inputs(ev._replace(split=s), key).keys) for s in protocol.SPLITS)
+    assert not {k.tobytes() for k in dev} & {k.tobytes() for k in rep}  # the two splits are other episodes
+    # calibration_pass hands these episodes and this key to the evaluation
+    seen = {}
+
+    def fake_evaluate(env_, agent, graph, cfg, proto, variants=None, key=None, episodes=None, **kw):
+        seen.update(episodes=episodes, key=key, kappa=cfg.kappa)
+        legs = np.tile(np.array([[10.0, 12.0, 3.0, 1.0]], np.float32), (len(episodes.table.task), 1, 1))
+        return types.SimpleNamespace(legs=legs, table=episodes.table)
+
+    monkeypatch.setattr(evaluate, 'evaluate', fake_evaluate)
+    out = evaluate.calibration_pass(env, types.SimpleNamespace(plans=True), None, AgentConfig(kappa=1.0), p, key,
+                                    progress=False)
+    assert np.isinf(seen['kappa']) and (seen['episodes'].table.task == 0).all()
+    assert np.asarray(seen['key']).tobytes() == np.asarray(jax.random.fold_in(key, protocol.CALIBRATION_FOLD)).tobytes()
+    np.testing.assert_array_equal(protocol.table_inputs(seen['episodes'], seen['key']).cells, inputs.cells)
+    assert out['patience'] == 3.0 and out['kappa_edges'] == pytest.approx(0.2) and out['legs'] == 300
+
+
+def test_reset_from_cells_in_both_backends():
+    """Task id 0 starts and ends in the given cells, with the tasks' noise (MJX and OGBench's own env)."""
+    env = envs.make('pointmaze-medium')
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0), 0, None, jnp.array([1, 1, 5, 6]))
+    noise = mazes.START_GOAL_NOISE * mazes.MAZE_UNIT / 4 + 1e-5
+    assert np.abs(np.asarray(s.data.qpos[:2]) - mazes.ij_to_xy((1, 1))).max() <= noise
+    assert np.abs(np.asarray(s.goal_xy) - mazes.ij_to_xy((5, 6))).max() <= noise
+    t = jax.jit(env.reset)(jax.random.PRNGKey(0), 2, None, jnp.array([1, 1, 5, 6]))  # a task id wins over cells
+    task = mazes.tasks('medium')[1]
+    assert np.abs(np.asarray(t.goal_xy) - mazes.ij_to_xy(task.goal_ij)).max() <= noise
+    from aqm_mjx.envs.ogbench_env import OGBenchEnvs  # pylint: disable=import-outside-toplevel
+
+    og = OGBenchEnvs('pointmaze-medium')
+    try:
+        _, _, goal_xy = og.reset([3, 4], [0, 2], np.stack([mazes.layout('medium')] * 2), [[1, 1, 5, 6], [0, 0, 0, 0]])
+    finally:
+        og.close()
+    assert np.abs(goal_xy[0] - mazes.ij_to_xy((5, 6))).max() <= noise
+    assert np.abs(goal_xy[1] - mazes.ij_to_xy(task.goal_ij)).max() <= noise
+
+
 def test_calibrated_budget_by_hand():
     """The AQM row's budget from a calibration: the fixed rule's kappa rounded to 0.01 (patience 0),
     the stall rule's patience rounded to a step (kappa kept, 1 where it is inf); without a single
@@ -210,7 +295,8 @@ def test_calibrated_budget_by_hand():
             protocol.ProtocolConfig(**bad)
     cal_proto = protocol.calibration_protocol(protocol.ProtocolConfig(episodes=20, ablations=('flat',), tasks=(2, 3),
                                                                       calibrate='stall', calibration_episodes=4))
-    assert (cal_proto.episodes, cal_proto.ablations, cal_proto.tasks, cal_proto.calibrate) == (4, (), (2, 3), 'none')
+    assert (cal_proto.episodes, cal_proto.ablations, cal_proto.tasks, cal_proto.calibrate, cal_proto.split) == (
+        4, (), (), 'none', 'dev')
     with pytest.raises(ValueError, match="calibrate is 'none'"):  # before any episode is run
         evaluate.calibration_pass(None, types.SimpleNamespace(plans=True), None, None, protocol.ProtocolConfig(),
                                   jax.random.PRNGKey(0))
@@ -364,7 +450,8 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
                            '--out', str(tmp_path / 'cal')]) == 0
     cal = json.loads((tmp_path / 'cal' / 'results.json').read_text())
     c = cal['calibration']
-    assert c['rule'] == 'stall' and c['calibrated'] and c['episodes'] == 4 * 5 and c['legs'] >= 1
+    assert c['rule'] == 'stall' and c['calibrated'] and c['episodes'] == ci.protocol.calibration_episodes == 20
+    assert c['legs'] >= 1
     assert c['patience'] >= 1 and c['patience'] == round(c['patience'])
     assert f'AQM row on the stall rule, patience {c["patience"]:g} steps' in capsys.readouterr().out
     assert cli.main(one + ['--set', f'agent.patience={c["patience"]:g}', '--out', str(tmp_path / 'hand')]) == 0

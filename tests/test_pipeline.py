@@ -60,12 +60,14 @@ def test_one_program_equals_the_step_by_step_path(tmp_path, one_program):
         assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
     agent = loaded.agent
     graph, kp = build_map(agent, ds.observations, cfg.map, k_map)
-    # the calibration by hand: the no-pruning agent on 3 other episodes per task, median of steps / d
+    # the calibration by hand: the no-pruning agent on its own episodes (cells no task uses), median of steps / d
+    cal_eps = protocol.calibration_episodes(env, cfg.protocol)
     cal_res = evaluate.evaluate(env, agent, graph, dataclasses.replace(cfg.agent, kappa=np.inf),
                                 protocol.calibration_protocol(cfg.protocol), progress=False,
-                                key=jax.random.fold_in(k_eval, protocol.CALIBRATION_FOLD))
-    assert len(cal_res.table.task) == 2 * 3 and cal_res.agents == ['aqm'] and cal_res.pruned.sum() == 0
-    legs = cal_res.legs.reshape(-1, 3)
+                                key=jax.random.fold_in(k_eval, protocol.CALIBRATION_FOLD), episodes=cal_eps)
+    n_cal = cfg.protocol.calibration_episodes
+    assert len(cal_res.table.task) == n_cal and cal_res.agents == ['aqm'] and cal_res.pruned.sum() == 0
+    legs = cal_res.legs.reshape(-1, cal_res.legs.shape[-1])
     legs = legs[(legs[:, 1] >= 0) & (legs[:, 0] > 0)]
     kappa = max(round(float(np.quantile(legs[:, 1] / legs[:, 0], 0.5)) - 1, 2), 0.0)
     cal = evaluate.calibration_pass(env, agent, graph, cfg.agent, cfg.protocol, k_eval, progress=False)

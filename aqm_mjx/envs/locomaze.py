@@ -317,24 +317,35 @@ class MazeEnv:
             raise ValueError(f'grid for maze {self.maze!r} must have shape {self.layout.shape}; got {tuple(grid.shape)}')
         return jnp.asarray(grid, jnp.int8)
 
-    def reset(self, key: jax.Array, task_id=None, grid=None) -> State:
+    def reset(self, key: jax.Array, task_id=None, grid=None, cells=None) -> State:
         """Start an evaluation episode.
 
         Args:
             key: PRNG key.
-            task_id: 1-based task (int or int array, traced allowed); None draws one uniformly.
+            task_id: 1-based task (int or int array, traced allowed); None draws one uniformly. With
+                ``cells``, a task id of 0 starts and ends in those cells instead.
             grid: ``[H, W]`` occupancy grid for this environment; None is the maze's layout.
+            cells: optional int ``[4]`` (init i, init j, goal i, goal j): the start and goal cells of a
+                task-0 episode (calibration episodes), with the tasks' start and goal noise.
         Returns:
             State with ``steps == 0``.
         """
         k_task, k_init, k_goal, k_rest = jax.random.split(key, 4)
         if task_id is None:
             tid = jax.random.randint(k_task, (), 1, self.num_tasks + 1)
+        elif cells is not None:
+            tid = jnp.clip(jnp.asarray(task_id, jnp.int32), 0, self.num_tasks)
         else:
             tid = self._check_task_id(task_id)
+        init_c, goal_c = self._task_init_xy[jnp.maximum(tid, 1) - 1], self._task_goal_xy[jnp.maximum(tid, 1) - 1]
+        if cells is not None:
+            c = jnp.asarray(cells, jnp.float32)
+            to_xy = lambda ij: jnp.stack([ij[1], ij[0]]) * mazes.MAZE_UNIT - mazes.MAZE_OFFSET  # noqa: E731
+            init_c = jnp.where(tid > 0, init_c, to_xy(c[:2]))
+            goal_c = jnp.where(tid > 0, goal_c, to_xy(c[2:]))
         noise = mazes.START_GOAL_NOISE * mazes.MAZE_UNIT / 4
-        init_xy = self._task_init_xy[tid - 1] + jax.random.uniform(k_init, (2,), minval=-noise, maxval=noise)
-        goal_xy = self._task_goal_xy[tid - 1] + jax.random.uniform(k_goal, (2,), minval=-noise, maxval=noise)
+        init_xy = init_c + jax.random.uniform(k_init, (2,), minval=-noise, maxval=noise)
+        goal_xy = goal_c + jax.random.uniform(k_goal, (2,), minval=-noise, maxval=noise)
         return self.reset_to(k_rest, init_xy, goal_xy, grid=grid, task_id=tid)
 
     def reset_to(self, key: jax.Array, init_xy: jax.Array, goal_xy: jax.Array, grid=None, task_id=0) -> State:

@@ -73,12 +73,19 @@ def make_env(agent: str, maze: str, grid: Optional[np.ndarray] = None):
     return env
 
 
-def _reset_one(env, seed: int, task_id: int):
+def _reset_one(env, seed: int, task_id: int, cells=None):
+    """One episode: OGBench's task ``task_id``, or (task 0) the start and goal cells ``cells`` (i, j, i, j)
+    through OGBench's own ``task_info`` option."""
+    if task_id == 0:
+        c = [int(x) for x in cells]
+        options = dict(task_info=dict(init_ij=(c[0], c[1]), goal_ij=(c[2], c[3])))
+    else:
+        options = dict(task_id=int(task_id))
     state = np.random.get_state()  # OGBench's start and goal noise draws from numpy's global generator
     try:
         np.random.seed(seed)
         env.action_space.seed(seed)
-        ob, info = env.reset(seed=seed, options=dict(task_id=int(task_id)))
+        ob, info = env.reset(seed=seed, options=options)
     finally:
         np.random.set_state(state)
     return ob, info['goal'], np.asarray(env.cur_goal_xy, np.float64)
@@ -92,11 +99,11 @@ class _Slice:
         self.pool: dict[bytes, list] = {}
         self.active: list = []
 
-    def reset(self, seeds, task_ids, grids):
+    def reset(self, seeds, task_ids, grids, cells):
         taken: dict[bytes, int] = {}
         self.active = []
         obs, goals, goal_xy = [], [], []
-        for seed, task, grid in zip(seeds, task_ids, grids):
+        for seed, task, grid, cell in zip(seeds, task_ids, grids, cells):
             key = np.asarray(grid, np.int8).tobytes()
             envs = self.pool.setdefault(key, [])
             k = taken.get(key, 0)
@@ -104,7 +111,7 @@ class _Slice:
             if k == len(envs):
                 envs.append(make_env(self.agent, self.maze, grid))
             env = envs[k]
-            o, g, gxy = _reset_one(env, int(seed), int(task))
+            o, g, gxy = _reset_one(env, int(seed), int(task), cell)
             self.active.append(env)
             obs.append(o)
             goals.append(g)
@@ -166,8 +173,9 @@ def _shutdown(conns: list, procs: list) -> None:
 class OGBenchEnvs:
     """``B`` OGBench environments of ``name`` (``'antmaze-medium'``, ...) stepped in lockstep.
 
-    ``reset(seeds [B], task_ids [B], grids [B, H, W]) -> (obs [B, O], goal [B, O], goal_xy [B, 2])``
-    (float32) starts one episode per environment; ``step(actions [B, A]) -> (obs [B, O], xy [B, 2],
+    ``reset(seeds [B], task_ids [B], grids [B, H, W], cells=None) -> (obs [B, O], goal [B, O], goal_xy
+    [B, 2])`` (float32) starts one episode per environment (task 0: from and to ``cells [B, 4]``, as
+    :meth:`aqm_mjx.envs.locomaze.MazeEnv.reset`); ``step(actions [B, A]) -> (obs [B, O], xy [B, 2],
     success [B], done [B])`` steps those not done. An episode is done at success (OGBench terminates
     at the goal) or after ``max_episode_steps``; a done environment no longer moves.
     """
@@ -207,23 +215,24 @@ class OGBenchEnvs:
         bounds = np.linspace(0, n, self.workers + 1).round().astype(int)
         return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
 
-    def reset(self, seeds, task_ids, grids):
+    def reset(self, seeds, task_ids, grids, cells=None):
         seeds, task_ids = np.asarray(seeds, np.int64), np.asarray(task_ids, np.int64)
         grids = np.asarray(grids, np.int8)
         n = len(seeds)
-        if task_ids.shape != (n,) or grids.ndim != 3 or grids.shape[0] != n:
-            raise ValueError(f'reset needs seeds [B], task_ids [B] and grids [B, H, W]; got {seeds.shape}, '
-                             f'{task_ids.shape}, {grids.shape}')
-        valid = {t.task_id for t in mazes.tasks(self.maze)}
+        cells = np.zeros((n, 4), np.int64) if cells is None else np.asarray(cells, np.int64)
+        if task_ids.shape != (n,) or grids.ndim != 3 or grids.shape[0] != n or cells.shape != (n, 4):
+            raise ValueError(f'reset needs seeds [B], task_ids [B], grids [B, H, W] and cells [B, 4]; got '
+                             f'{seeds.shape}, {task_ids.shape}, {grids.shape}, {cells.shape}')
+        valid = {t.task_id for t in mazes.tasks(self.maze)} | {0}
         bad = sorted(set(task_ids.tolist()) - valid)
         if bad:
             raise ValueError(f'task ids {bad} do not exist in maze {self.maze!r} (it has {sorted(valid)})')
         if self._local is not None:
-            out = self._local.reset(seeds, task_ids, grids)
+            out = self._local.reset(seeds, task_ids, grids, cells)
         else:
             self._slices = self._split(n)
             for c, s in zip(self._conns, self._slices):
-                c.send(('reset', seeds[s], task_ids[s], grids[s]))
+                c.send(('reset', seeds[s], task_ids[s], grids[s], cells[s]))
             parts = [c.recv() for c in self._conns]
             out = tuple(np.concatenate([p[k] for p in parts]) for k in range(3))
         self.steps = 0

@@ -2,13 +2,15 @@
 agent really takes per leg, and the budget settings that cut a traversable leg at a chosen rate.
 
 Every completed leg of an episode is logged by the agent (:data:`aqm_mjx.agent.rules.MAX_LEGS` per
-episode) as ``(d, steps, longest stall)``: the quasimetric's length of the leg, the control steps the
-controller took to reach its keypoint, and the longest run of steps without progress in d on it.
-From the legs of a calibration pass (the no-pruning agent on the training layout, which never cuts,
-so every leg it completes is a traversable one) the two rules are calibrated at a false-alarm rate
-``q``:
+episode) as ``(d, steps, longest stall, kind)``: the quasimetric's length of the leg, the control
+steps the controller took to reach its keypoint, the longest run of steps without progress in d on
+it, and whether it was a start leg, a keypoint edge or a goal leg. From the legs of a calibration
+pass (the no-pruning agent on the training layout, between cells no evaluation task uses; it never
+cuts, so every leg it completes is a traversable one) the rules are calibrated at a false-alarm
+rate ``q``:
 
-- the paper's fixed budget ``(1 + kappa) d``: ``kappa = quantile_{1-q}(steps / d) - 1``;
+- the fixed budget ``(1 + kappa) d`` on every leg: ``kappa = quantile_{1-q}(steps / d) - 1``;
+- the paper's rule, the same on keypoint edges alone: ``kappa_edges``, that quantile over them;
 - the stall rule: ``patience = quantile_{1-q}(longest stall)``.
 
 so that a fraction ``q`` of the traversable legs seen would have been cut. Legs the agent never
@@ -30,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from aqm_mjx.agent.rules import LEG_EDGE
 from aqm_mjx.evaluation.protocol import CALIBRATE as RULES
 from aqm_mjx.evaluation.protocol import NO_PRUNING
 
@@ -37,7 +40,7 @@ QUANTILES = (0.5, 0.9, 0.95, 0.99)
 
 
 def valid(legs) -> jnp.ndarray:
-    """``bool [...]``: which rows of ``legs [..., 3]`` hold a logged leg (unused slots are -1 padded;
+    """``bool [...]``: which rows of ``legs [..., F]`` hold a logged leg (unused slots are -1 padded;
     a leg of zero length is dropped, its ratio being undefined)."""
     legs = jnp.asarray(legs)
     return (legs[..., 1] >= 0) & (legs[..., 0] > 0) & jnp.isfinite(legs[..., 0])
@@ -47,21 +50,24 @@ def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
     """The budget settings that cut a fraction ``false_alarm`` of the legs in ``legs [..., 3]``.
 
     Args:
-        legs: ``(d, steps, longest stall)`` per leg, any leading shape (e.g. ``[E, MAX_LEGS, 3]``),
-            -1 padded.
+        legs: ``(d, steps, longest stall[, kind])`` per leg, any leading shape (e.g. ``[E, MAX_LEGS,
+            4]``), -1 padded. Without the kind column every leg counts as a keypoint edge.
         false_alarm: the fraction of (traversable) legs that the settings would cut, in (0, 1).
         rows: optional ``bool`` mask over the leading axes: which legs to use (e.g. the no-pruning
             rows of an episode table).
     Returns:
-        ``{'kappa', 'patience', 'legs', 'ratio_q', 'stall_q'}``: the fixed rule's slack, the stall
-        rule's patience, the number of legs used, and the quantiles :data:`QUANTILES` of steps / d
-        and of the longest stall (NaN when no leg was logged). Jittable.
+        ``{'kappa', 'kappa_edges', 'patience', 'legs', 'edges', 'ratio_q', 'stall_q'}``: the fixed
+        rule's slack over every leg and over keypoint edges alone (the paper's rule), the stall
+        rule's patience, the number of legs and of keypoint edges used, and the quantiles
+        :data:`QUANTILES` of steps / d and of the longest stall (NaN when no leg was logged). Jittable.
     """
     if not 0.0 < false_alarm < 1.0:
         raise ValueError(f'false_alarm must be in (0, 1); got {false_alarm}')
     legs = jnp.asarray(legs, jnp.float32)
     if legs.size == 0:  # no leg at all (shapes are static, so this is a trace-time check): NaN, as for no valid one
         legs, rows = jnp.full((1, 3), -1.0), None
+    if legs.shape[-1] == 3:  # a log without kinds: every leg a keypoint edge
+        legs = jnp.concatenate([legs, jnp.full(legs.shape[:-1] + (1,), float(LEG_EDGE))], -1)
     ok = valid(legs)
     if rows is not None:
         r = jnp.asarray(rows, bool)
@@ -70,8 +76,11 @@ def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
     stall = jnp.where(ok, legs[..., 2], jnp.nan).reshape(-1)
     qs = jnp.asarray(QUANTILES + (1.0 - false_alarm,), jnp.float32)
     r_q, s_q = jnp.nanquantile(ratio, qs), jnp.nanquantile(stall, qs)
-    return dict(kappa=jnp.maximum(r_q[-1] - 1.0, 0.0), patience=jnp.maximum(s_q[-1], 1.0),
-                legs=jnp.sum(ok).astype(jnp.int32), ratio_q=r_q[:-1], stall_q=s_q[:-1])
+    edge = ok & (legs[..., 3] == LEG_EDGE)
+    e_q = jnp.nanquantile(jnp.where(edge.reshape(-1), ratio, jnp.nan), 1.0 - false_alarm)
+    return dict(kappa=jnp.maximum(r_q[-1] - 1.0, 0.0), kappa_edges=jnp.maximum(e_q - 1.0, 0.0),
+                patience=jnp.maximum(s_q[-1], 1.0), legs=jnp.sum(ok).astype(jnp.int32),
+                edges=jnp.sum(edge).astype(jnp.int32), ratio_q=r_q[:-1], stall_q=s_q[:-1])
 
 
 def budget(cal: dict, rule: str, kappa, patience) -> tuple[jax.Array, jax.Array]:
@@ -98,8 +107,19 @@ def budget(cal: dict, rule: str, kappa, patience) -> tuple[jax.Array, jax.Array]
     return kappa, patience
 
 
+def row_budgets(cal: dict, kappa, patience) -> dict:
+    """``{kind: (kappa, patience)}`` for every kind of calibrated row (``protocol.Row.calibrated``)
+    from calibration ``cal``: ``'fixed'`` and ``'stall'`` as :func:`budget` gives them for the AQM
+    row's ``kappa`` and ``patience``, ``'paper'`` the keypoint-edge kappa rounded to 0.01 (patience 0;
+    the given ``kappa`` when no edge was logged). Jittable; :func:`aqm_mjx.evaluation.protocol.table_inputs`
+    applies them."""
+    k = jnp.round(cal['kappa_edges'], 2)
+    paper = (jnp.where(jnp.isfinite(k), k, jnp.float32(kappa)).astype(jnp.float32), jnp.float32(0.0))
+    return dict(fixed=budget(cal, 'fixed', kappa, patience), stall=budget(cal, 'stall', kappa, patience), paper=paper)
+
+
 def legs_of(results, agent: str, layout=None) -> np.ndarray:
-    """``[N, 3]`` the logged legs of one agent's episodes (on one layout, or on all) of an
+    """``[N, F]`` the logged legs of one agent's episodes (on one layout, or on all) of an
     :class:`~aqm_mjx.evaluation.evaluate.Results`."""
     if agent not in results.agents:
         raise ValueError(f'no agent {agent!r} in these results (they hold {results.agents})')
@@ -108,7 +128,8 @@ def legs_of(results, agent: str, layout=None) -> np.ndarray:
         if layout not in results.variants:
             raise ValueError(f'no layout {layout!r} in these results (they hold {results.variants})')
         rows &= results.table.variant == results.variants.index(layout)
-    legs = np.asarray(results.legs)[rows].reshape(-1, 3)
+    legs = np.asarray(results.legs)[rows]
+    legs = legs.reshape(-1, legs.shape[-1])
     return legs[np.asarray(valid(legs))]
 
 

@@ -22,7 +22,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from aqm_mjx.agent.rollout import make_host_rollout, make_rollout
-from aqm_mjx.agent.rules import MAX_LEGS, AgentConfig
+from aqm_mjx.agent.rules import LEG_FIELDS, MAX_LEGS, AgentConfig
 from aqm_mjx.evaluation import calibration
 from aqm_mjx.evaluation import protocol as proto
 from aqm_mjx.interface import Agent
@@ -63,7 +63,7 @@ class Results(NamedTuple):
     summary: dict  # {agent: {layout: {'task_1': rate, ..., 'mean': rate, 'pruned_mean': x}}}
     traces: dict  # {(agent, layout, task): {'xy': [T, 2], 'node': [T], 'cuts': [C, 2], 'goal_xy': [2], ...}}
     timing: dict
-    legs: np.ndarray  # float32 [E, MAX_LEGS, 3] completed legs (d, steps, longest stall), -1 padded
+    legs: np.ndarray  # float32 [E, MAX_LEGS, LEG_FIELDS] completed legs (d, steps, longest stall, kind), -1 padded
     n_legs: np.ndarray  # int32 [E] legs completed (the first MAX_LEGS are in ``legs``)
     removed: np.ndarray  # int32 [E] keypoint edges cut (``pruned`` counts overruns)
 
@@ -122,7 +122,8 @@ def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional
 
 def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.ProtocolConfig,
              variants: Optional[dict] = None, key: Optional[jax.Array] = None, mesh: Optional[Mesh] = None,
-             progress: bool = True, program=None) -> Results:
+             progress: bool = True, program=None, budgets: Optional[dict] = None,
+             episodes: Optional[proto.Episodes] = None) -> Results:
     """Run the protocol: every agent x layout x task x episode, in chunks of ``protocol.envs``.
 
     Args:
@@ -130,14 +131,18 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
         agent: any :class:`~aqm_mjx.interface.Agent` with its parameters bound.
         graph: from :func:`aqm_mjx.mapping.build.build_map` (or trimmed); None for an agent that
             does not plan (then only its flat row is run).
-        cfg: the agent's rules (its ``kappa`` and ``patience`` are the AQM row's).
+        cfg: the agent's rules (its ``kappa``, ``patience`` and ``cut_slack`` are the AQM row's).
         variants: ``{name: grid [H, W]}``; default ``{'base': the maze's layout}``.
-        key: base of the episode keys (default ``PRNGKey(0)``).
+        key: the evaluation key (default ``PRNGKey(0)``); the episodes are its ``protocol.split``'s.
         mesh: devices to shard the environments over (default: all devices).
         program: a compiled chunk from :func:`make_program` to reuse (its ``steps``, ``mesh`` and
             backend); by default one is made for ``protocol.backend`` (and closed at the end).
+        budgets: ``{kind: (kappa, patience)}`` of the rows that take a calibrated budget (e.g.
+            ``'paper=cal'``), from :func:`calibration_pass`.
+        episodes: an episode table to run instead of the protocol's (the calibration pass's).
     """
-    eps = proto.plan_episodes(env, protocol, cfg.kappa, variants, plans=agent.plans, patience=cfg.patience)
+    eps = episodes if episodes is not None else proto.plan_episodes(
+        env, protocol, cfg.kappa, variants, plans=agent.plans, patience=cfg.patience, cut_slack=cfg.cut_slack)
     table = eps.table
     mesh = device_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
@@ -150,7 +155,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     aux, graph = jax.device_put((agent.aux, graph), rep)
     n = len(table.task)
     success, pruned, removed = np.zeros(n, bool), np.zeros(n, np.int32), np.zeros(n, np.int32)
-    legs, n_legs = np.full((n, MAX_LEGS, 3), -1.0, np.float32), np.zeros(n, np.int32)
+    legs, n_legs = np.full((n, MAX_LEGS, LEG_FIELDS), -1.0, np.float32), np.zeros(n, np.int32)
     first = {}  # (agent, layout, task) -> row of its first episode, whose trajectory is kept
     for r in range(n):
         first.setdefault((table.agent[r], table.variant[r], table.task[r]), r)
@@ -169,7 +174,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
             rows = np.arange(c * chunk, (c + 1) * chunk)
             real = rows < n
             rows = np.where(real, rows, 0)  # padding repeats row 0; its results are dropped
-            inputs = jax.tree.map(lambda x: put_global(x, shard), proto.table_inputs(eps, key, rows))
+            inputs = jax.tree.map(lambda x: put_global(x, shard), proto.table_inputs(eps, key, rows, budgets))
             t_c = time.perf_counter()
             ticks.start(int(real.sum()), eps.steps)
             out = program(aux, graph, inputs)
@@ -209,34 +214,41 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
 def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.ProtocolConfig,
                      key: jax.Array, layout=None, mesh: Optional[Mesh] = None, progress: bool = True,
                      program=None) -> dict:
-    """The budget calibration that ``protocol.calibrate`` asks for before an evaluation.
+    """The budget calibration that ``protocol.calibrate`` (or a calibrated row such as
+    ``'paper=cal'``) asks for before an evaluation.
 
     The agent without pruning on ``layout`` (default the maze's: the training layout),
-    ``protocol.calibration_episodes`` per task, on the episodes of ``fold_in(key,
+    ``protocol.calibration_episodes`` episodes between start and goal cells that no evaluation task
+    uses (:func:`~aqm_mjx.evaluation.protocol.calibration_episodes`), on ``fold_in(key,
     CALIBRATION_FOLD)`` (``key``: the evaluation's, whose episodes these are not); its completed
-    legs give the AQM row's budget at ``protocol.false_alarm``
+    legs give the budgets at ``protocol.false_alarm``
     (:func:`~aqm_mjx.evaluation.calibration.calibrate`, then
-    :func:`~aqm_mjx.evaluation.calibration.budget`).
+    :func:`~aqm_mjx.evaluation.calibration.budget` and :func:`~aqm_mjx.evaluation.calibration.row_budgets`).
 
     Returns:
-        ``{'rule', 'false_alarm', 'episodes', 'legs', 'calibrated', 'kappa', 'patience', 'ratio_q',
-        'stall_q'}``: ``kappa`` and ``patience`` are the AQM row's (``cfg``'s when ``calibrated`` is
-        False: no leg was completed); ``ratio_q`` and ``stall_q`` the quantiles
+        ``{'rule', 'false_alarm', 'episodes', 'legs', 'edges', 'calibrated', 'kappa', 'patience',
+        'kappa_edges', 'budgets', 'ratio_q', 'stall_q'}``: ``kappa`` and ``patience`` are the AQM
+        row's under ``protocol.calibrate`` (``cfg``'s when it is 'none' or ``calibrated`` is False: no
+        leg was completed); ``kappa_edges`` the paper's rule's; ``budgets`` ``{kind: (kappa,
+        patience)}`` for :func:`evaluate`; ``ratio_q`` and ``stall_q`` the quantiles
         :data:`~aqm_mjx.evaluation.calibration.QUANTILES` of steps / d and of the longest stall;
         plain Python values.
     Raises:
-        ValueError: ``protocol.calibrate`` is 'none', or the agent has no quasimetric (no budgets).
+        ValueError: nothing asks for a calibration, or the agent has no quasimetric (no budgets).
     """
     rule = protocol.calibrate
-    if rule == 'none' or not agent.plans:
+    if not proto.needs_calibration(protocol) or not agent.plans:
         raise ValueError('calibration_pass: nothing to calibrate ' + (
-            "(protocol.calibrate is 'none')" if rule == 'none' else '(the agent has no quasimetric, so no budgets)'))
-    variants = None if layout is None else {'train': layout}
+            "(protocol.calibrate is 'none' and no row is calibrated)" if agent.plans
+            else '(the agent has no quasimetric, so no budgets)'))
+    eps = proto.calibration_episodes(env, protocol, layout)
     res = evaluate(env, agent, graph, dataclasses.replace(cfg, kappa=math.inf, patience=0.0),
-                   proto.calibration_protocol(protocol), variants,
-                   key=jax.random.fold_in(key, proto.CALIBRATION_FOLD), mesh=mesh, progress=progress, program=program)
+                   proto.calibration_protocol(protocol), key=jax.random.fold_in(key, proto.CALIBRATION_FOLD),
+                   mesh=mesh, progress=progress, program=program, episodes=eps)
     c = calibration.calibrate(res.legs, protocol.false_alarm)
     kappa, patience = calibration.budget(c, rule, cfg.kappa, cfg.patience)
+    budgets = {k: (float(a), float(b)) for k, (a, b) in calibration.row_budgets(c, cfg.kappa, cfg.patience).items()}
     return dict(rule=rule, false_alarm=protocol.false_alarm, episodes=len(res.table.task), legs=int(c['legs']),
-                calibrated=bool(int(c['legs']) > 0), kappa=float(kappa), patience=float(patience),
+                edges=int(c['edges']), calibrated=bool(int(c['legs']) > 0), kappa=float(kappa), patience=float(patience),
+                kappa_edges=budgets['paper'][0], budgets=budgets,
                 ratio_q=np.asarray(c['ratio_q']).tolist(), stall_q=np.asarray(c['stall_q']).tolist())

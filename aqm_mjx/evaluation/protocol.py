@@ -3,9 +3,16 @@ episodes, and the success rates (on device).
 
 Protocol: every task of the maze, ``episodes`` episodes each, deterministic actions clipped to
 [-1, 1], an episode succeeds when it is at the goal at its last step. The AQM agent, its ablations
-(other kappas, the stall rule, no pruning, the flat policy) and test-time layouts (:mod:`aqm_mjx.envs.shifts`) are
-rows of the same table. Episode ``(layout, task, e)`` has the same key id for every agent, so the
-agents meet identical episodes.
+(other kappas, the stall rule, the paper's rule, no pruning, the flat policy) and test-time layouts
+(:mod:`aqm_mjx.envs.shifts`) are rows of the same table. Episode ``(layout, task, e)`` has the same
+key id for every agent, so the agents meet identical episodes.
+
+Episode splits. The episodes of an evaluation key come in two named splits (``ProtocolConfig.split``):
+``dev``, the key itself, where settings are chosen (every default of the presets was chosen on the
+``dev`` episodes of ``PRNGKey(0)``), and ``report``, ``fold_in(key, REPORT_FOLD)``, which no choice
+looks at and which every table is measured on. The calibration pass uses neither: its episodes run
+between start and goal cells of the training layout that no evaluation task uses
+(:func:`calibration_pairs`), on ``fold_in(key, CALIBRATION_FOLD)``.
 """
 
 from __future__ import annotations
@@ -24,9 +31,15 @@ from aqm_mjx.config import option
 from aqm_mjx.envs import mazes
 
 AQM, FLAT, NO_PRUNING = 'aqm', 'flat', 'no-pruning'
+PAPER_CAL = 'paper=cal'  # the paper's rule at the kappa calibrated on keypoint edges
 BACKENDS = ('mjx', 'ogbench')
 CALIBRATE = ('none', 'fixed', 'stall')  # ProtocolConfig.calibrate: which budget a calibration pass sets
+CALIBRATED = ('', 'fixed', 'stall', 'paper')  # Row.calibrated: which calibrated budget a row takes ('' none)
 CALIBRATION_FOLD = 1  # the calibration pass's episodes: fold_in(evaluation key, 1), apart from the evaluation's
+REPORT_FOLD = 2  # the report split's episodes: fold_in(evaluation key, 2)
+CELLS_FOLD = 3  # which start and goal cells each calibration episode draws: fold_in(its key, 3)
+SPLITS = ('dev', 'report')
+MIN_PAIR_CELLS = 4  # calibration pairs are at least this many BFS steps apart (legs of several keypoints)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,13 +62,16 @@ class ProtocolConfig:
                             "the training layout before the evaluation", choices=CALIBRATE)
     false_alarm: float = option(0.005, 'calibrate: the fraction of traversable legs of the calibration pass that '
                                 'the calibrated budget would cut')
-    calibration_episodes: int = option(4, 'calibrate: episodes per task of the calibration pass (other episodes '
-                                       "than the evaluation's)")
+    calibration_episodes: int = option(100, 'calibrate: episodes of the calibration pass, between start and goal '
+                                       'cells of the training layout that no evaluation task uses')
+    split: str = option('report', "which episodes of the evaluation key: 'report' (no setting was chosen on them; "
+                        "every table) or 'dev' (where settings are chosen)", choices=SPLITS)
 
     def __post_init__(self):
         cfg_lib.check_types(self)
         cfg_lib.check_positive_int(self, 'episodes', 'envs', 'calibration_episodes')
         cfg_lib.check_choice(type(self).__name__, 'calibrate', self.calibrate, CALIBRATE)
+        cfg_lib.check_choice(type(self).__name__, 'split', self.split, SPLITS)
         if not 0.0 < self.false_alarm < 1.0:
             raise ValueError(f'ProtocolConfig.false_alarm must be in (0, 1); got {self.false_alarm!r}')
         if self.backend not in BACKENDS:
@@ -81,33 +97,58 @@ def _number(a: str, what: str, finite: bool = False) -> float:
     return x
 
 
-def agent_specs(kappa: float, ablations, plans: bool = True,
-                patience: float = 0.0) -> list[tuple[str, float, bool, float]]:
-    """``[(name, kappa, use_graph, patience)]``: the AQM agent at ``kappa`` and ``patience`` (0: the
-    fixed budget) first, then the ablations (``'kappa=X'``: the fixed budget at X; ``'stall=P'``:
-    the stall rule at patience P, with the AQM row's kappa); for a method without a quasimetric
-    (``plans`` False) the flat controller alone."""
+class Row(NamedTuple):
+    """One agent of the episode table: its name and per-environment budget."""
+
+    name: str
+    kappa: float  # budget slack (inf: no pruning)
+    use_graph: bool  # False: the flat policy
+    patience: float  # 0: the fixed budget (1 + kappa) d; > 0: the stall rule
+    edges_only: bool = False  # budget keypoint edges alone, not start and goal legs (the paper's rule)
+    cut_slack: float = 0.0  # parallel cuts (0: the overrun edge alone)
+    calibrated: str = ''  # which calibrated budget replaces kappa / patience: one of CALIBRATED ('' none)
+
+
+def agent_specs(kappa: float, ablations, plans: bool = True, patience: float = 0.0,
+                cut_slack: float = 0.0) -> list[Row]:
+    """The rows of the table: the AQM agent at ``kappa``, ``patience`` (0: the fixed budget) and
+    ``cut_slack`` first, then the ablations (``'kappa=X'``: the fixed budget at X; ``'stall=P'``: the
+    stall rule at patience P, with the AQM row's kappa; both with the AQM row's parallel cuts;
+    ``'paper=X'``: the paper's rule, a fixed budget (1 + X) d on keypoint edges alone, one cut per
+    overrun; ``'paper=cal'``: the same at the kappa a calibration pass gives for keypoint edges);
+    for a method without a quasimetric (``plans`` False) the flat controller alone."""
     if not plans:
-        return [(FLAT, math.inf, False, 0.0)]
-    out = [(AQM, float(kappa), True, float(patience))]
+        return [Row(FLAT, math.inf, False, 0.0)]
+    out = [Row(AQM, float(kappa), True, float(patience), cut_slack=float(cut_slack))]
     for a in ablations:
         if a == NO_PRUNING:
-            out.append((a, math.inf, True, 0.0))
+            out.append(Row(a, math.inf, True, 0.0))
         elif a == FLAT:
-            out.append((a, math.inf, False, 0.0))
+            out.append(Row(a, math.inf, False, 0.0))
+        elif a == PAPER_CAL:
+            out.append(Row(a, 1.0, True, 0.0, edges_only=True, calibrated='paper'))
+        elif isinstance(a, str) and a.startswith('paper='):
+            out.append(Row(a, _number(a, 'kappa'), True, 0.0, edges_only=True))
         elif isinstance(a, str) and a.startswith('kappa='):
-            out.append((a, _number(a, 'kappa'), True, 0.0))
+            out.append(Row(a, _number(a, 'kappa'), True, 0.0, cut_slack=float(cut_slack)))
         elif isinstance(a, str) and a.startswith('stall='):
             p = _number(a, 'patience', finite=True)
             if p == 0:
                 raise ValueError(f'ablation {a!r}: patience must be > 0 (0 is the fixed budget: kappa=X)')
-            out.append((a, float(kappa) if math.isfinite(kappa) else 1.0, True, p))
+            out.append(Row(a, float(kappa) if math.isfinite(kappa) else 1.0, True, p, cut_slack=float(cut_slack)))
         else:
-            raise ValueError(f'unknown ablation {a!r}; expected {NO_PRUNING!r}, {FLAT!r}, kappa=X or stall=P')
+            raise ValueError(f'unknown ablation {a!r}; expected {NO_PRUNING!r}, {FLAT!r}, kappa=X, stall=P, paper=X '
+                             f'or {PAPER_CAL!r}')
     names = [spec[0] for spec in out]
     if len(set(names)) != len(names):
         raise ValueError(f'ablations repeat an agent: {names}')
     return out
+
+
+def needs_calibration(protocol: 'ProtocolConfig') -> bool:
+    """Whether an evaluation under ``protocol`` runs a calibration pass first (the AQM row's
+    ``calibrate``, or a row such as ``'paper=cal'`` that takes a calibrated budget)."""
+    return protocol.calibrate != 'none' or PAPER_CAL in protocol.ablations
 
 
 class Table(NamedTuple):
@@ -115,28 +156,32 @@ class Table(NamedTuple):
 
     agent: np.ndarray  # int [E] index into the agent specs
     variant: np.ndarray  # int [E] index into the layouts
-    task: np.ndarray  # int32 [E] task id (1-based)
+    task: np.ndarray  # int32 [E] task id (1-based; 0: a calibration episode between ``pairs`` cells)
     episode: np.ndarray  # int [E] episode number within (layout, task)
     seed_id: np.ndarray  # int32 [E] key id: the same for every agent on one (layout, task, episode)
     kappa: np.ndarray  # float32 [E]
     use_graph: np.ndarray  # bool [E]
     group: np.ndarray  # int32 [E] (agent, layout, task) cell of the rate table, row-major
     patience: np.ndarray  # float32 [E] (0: the fixed budget)
+    edges_only: np.ndarray  # bool [E] keypoint edges alone are budgeted (the paper's rule)
+    cut_slack: np.ndarray  # float32 [E] parallel cuts
+    calibrated: np.ndarray  # int8 [E] index into CALIBRATED: which calibrated budget the row takes
 
 
 def episode_table(specs, n_variants: int, task_ids, episodes: int) -> Table:
     """Every agent x layout x task x episode, in that order."""
+    specs = [Row(*s) for s in specs]
     a, v, t, e = np.meshgrid(np.arange(len(specs)), np.arange(n_variants), np.asarray(task_ids), np.arange(episodes),
                              indexing='ij')
     a, v, t, e = (x.reshape(-1) for x in (a, v, t, e))
     n_tasks = len(task_ids)
     task_pos = np.searchsorted(np.sort(task_ids), t) if n_tasks else t
     seed_id = ((v * n_tasks + task_pos) * episodes + e).astype(np.int32)
-    kappa = np.array([specs[i][1] for i in a], np.float32)
-    use = np.array([specs[i][2] for i in a], bool)
-    patience = np.array([specs[i][3] for i in a], np.float32)
+    col = lambda f, dt: np.array([getattr(specs[i], f) for i in a], dt)  # noqa: E731
     group = ((a * n_variants + v) * n_tasks + task_pos).astype(np.int32)
-    return Table(a, v, t.astype(np.int32), e, seed_id, kappa, use, group, patience)
+    cal = np.array([CALIBRATED.index(specs[i].calibrated) for i in a], np.int8)
+    return Table(a, v, t.astype(np.int32), e, seed_id, col('kappa', np.float32), col('use_graph', bool), group,
+                 col('patience', np.float32), col('edges_only', bool), col('cut_slack', np.float32), cal)
 
 
 class Episodes(NamedTuple):
@@ -144,10 +189,12 @@ class Episodes(NamedTuple):
 
     variants: dict  # {name: grid [H, W]}
     grids: np.ndarray  # int8 [V, H, W], validated
-    task_ids: list  # sorted task ids
-    specs: list  # agent_specs(...)
+    task_ids: list  # sorted task ids ([0] for a calibration pass)
+    specs: list  # agent_specs(...): Row per agent
     table: Table
     steps: int  # control steps per episode
+    split: str = 'dev'  # which episodes of the key: SPLITS ('dev': the key itself)
+    pairs: Optional[np.ndarray] = None  # int32 [P, 4] start and goal cells of task-0 (calibration) episodes
 
     @property
     def agents(self) -> list:
@@ -160,10 +207,11 @@ class Episodes(NamedTuple):
 
 
 def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optional[dict] = None,
-                  plans: bool = True, patience: float = 0.0) -> Episodes:
+                  plans: bool = True, patience: float = 0.0, cut_slack: float = 0.0) -> Episodes:
     """Validate the layouts and task ids of an evaluation and lay out its episode table
-    (``kappa``, ``patience``: the AQM agent's budget slack and rule; ``plans`` False: a method
-    without a quasimetric, one flat row). The episode keys do not depend on the agents, so every method meets the same episodes."""
+    (``kappa``, ``patience``, ``cut_slack``: the AQM agent's budget slack, rule and parallel cuts;
+    ``plans`` False: a method without a quasimetric, one flat row). The episode keys do not depend
+    on the agents, so every method meets the same episodes."""
     variants = {'base': env.layout} if variants is None else dict(variants)
     grids = np.stack([mazes.validate_grid(g, env.maze) for g in variants.values()])
     valid_ids = {t.task_id for t in mazes.tasks(env.maze)}
@@ -171,32 +219,83 @@ def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optiona
     bad = [t for t in task_ids if t not in valid_ids]
     if bad:
         raise ValueError(f'task ids {bad} do not exist in maze {env.maze!r} (it has {sorted(valid_ids)})')
-    specs = agent_specs(kappa, protocol.ablations, plans, patience)
+    specs = agent_specs(kappa, protocol.ablations, plans, patience, cut_slack)
     table = episode_table(specs, len(grids), task_ids, protocol.episodes)
-    return Episodes(variants, grids, task_ids, specs, table, int(protocol.horizon or env.max_episode_steps))
+    return Episodes(variants, grids, task_ids, specs, table, int(protocol.horizon or env.max_episode_steps),
+                    protocol.split)
+
+
+def calibration_pairs(grid, maze: str, min_cells: int = MIN_PAIR_CELLS) -> np.ndarray:
+    """The start and goal cells a calibration episode may draw: int32 ``[P, 4]`` (init i, j, goal i, j),
+    every ordered pair of free cells of ``grid`` (the training layout) at least ``min_cells`` BFS
+    steps apart, neither of which is a start or goal cell of an evaluation task of ``maze``.
+
+    Raises:
+        ValueError: the layout has no such pair (a maze too small for the rule).
+    """
+    grid = mazes.validate_grid(grid, maze)
+    used = {t.init_ij for t in mazes.tasks(maze)} | {t.goal_ij for t in mazes.tasks(maze)}
+    free = [tuple(int(x) for x in c) for c in np.argwhere(grid == 0) if tuple(int(x) for x in c) not in used]
+    out = []
+    for a in free:
+        steps = mazes.bfs_from(grid, a)
+        out += [a + b for b in free if b != a and steps[b] >= min_cells]
+    if not out:
+        raise ValueError(f'maze {maze!r}: no two free cells outside the evaluation tasks lie {min_cells} or more '
+                         'steps apart; nothing to calibrate on')
+    return np.asarray(out, np.int32)
 
 
 def calibration_protocol(protocol: ProtocolConfig) -> ProtocolConfig:
-    """The protocol of the calibration pass before an evaluation (``protocol.calibrate``): the agent
-    alone (run it without pruning), ``protocol.calibration_episodes`` per task, the same tasks,
-    horizon and backend; run it on ``fold_in(key, CALIBRATION_FOLD)`` of the evaluation's key, so
-    that its episodes are not the evaluated ones."""
-    return dataclasses.replace(protocol, episodes=protocol.calibration_episodes, ablations=(), calibrate='none')
+    """The protocol of the calibration pass before an evaluation: the agent alone (run it without
+    pruning), ``protocol.calibration_episodes`` episodes, the same horizon and backend, no split
+    (its key is ``fold_in(key, CALIBRATION_FOLD)`` of the evaluation's)."""
+    return dataclasses.replace(protocol, episodes=protocol.calibration_episodes, ablations=(), calibrate='none',
+                               tasks=(), split='dev')
 
 
-def calibration_episodes(env, protocol: ProtocolConfig) -> Episodes:
-    """The episode table of the calibration pass: :func:`calibration_protocol`, no pruning, on the
-    maze's layout (the training layout)."""
-    return plan_episodes(env, calibration_protocol(protocol), math.inf)
+def calibration_episodes(env, protocol: ProtocolConfig, layout=None) -> Episodes:
+    """The episode table of the calibration pass: :func:`calibration_protocol`, no pruning, on
+    ``layout`` (default the maze's: the training layout), each episode between two cells of
+    :func:`calibration_pairs` (task id 0), drawn from its own key: no evaluation task, start or goal
+    cell, and no evaluation key."""
+    p = calibration_protocol(protocol)
+    grid = env.layout if layout is None else layout
+    grids = mazes.validate_grid(grid, env.maze)[None]
+    specs = agent_specs(math.inf, ())
+    table = episode_table(specs, 1, [0], p.episodes)
+    return Episodes({'train': grids[0]}, grids, [0], specs, table, int(p.horizon or env.max_episode_steps), 'dev',
+                    calibration_pairs(grids[0], env.maze))
 
 
-def table_inputs(episodes: Episodes, key: jax.Array, rows=None) -> EpisodeInputs:
-    """The rollout inputs of table ``rows`` (default: all), episode keys from ``key`` and each row's
-    ``seed_id``: the one place where the table becomes a batch."""
+def split_key(key: jax.Array, split: str) -> jax.Array:
+    """The key of a split's episodes: ``key`` for ``'dev'``, ``fold_in(key, REPORT_FOLD)`` for ``'report'``."""
+    if split not in SPLITS:
+        raise ValueError(f'unknown episode split {split!r}; expected one of {", ".join(SPLITS)}')
+    return key if split == 'dev' else jax.random.fold_in(key, REPORT_FOLD)
+
+
+def table_inputs(episodes: Episodes, key: jax.Array, rows=None, budgets: Optional[dict] = None) -> EpisodeInputs:
+    """The rollout inputs of table ``rows`` (default: all), episode keys from the split's key
+    (:func:`split_key`) and each row's ``seed_id``: the one place where the table becomes a batch.
+
+    ``budgets``: ``{kind: (kappa, patience)}`` for the rows whose ``calibrated`` is that kind (from a
+    calibration pass; traced values allowed). Task-0 rows draw their cells from ``episodes.pairs``."""
     t = episodes.table
     rows = np.arange(len(t.task)) if rows is None else np.asarray(rows)
-    return episode_inputs(episode_keys(key, t.seed_id[rows]), t.task[rows], episodes.grids[t.variant[rows]],
-                          t.kappa[rows], t.use_graph[rows], t.patience[rows])
+    key = split_key(key, episodes.split)
+    ids = t.seed_id[rows]
+    kappa, patience = jnp.asarray(t.kappa[rows]), jnp.asarray(t.patience[rows])
+    for kind, (k, p) in (budgets or {}).items():
+        mine = jnp.asarray(t.calibrated[rows] == CALIBRATED.index(kind))
+        kappa, patience = jnp.where(mine, k, kappa), jnp.where(mine, p, patience)
+    cells = None
+    if episodes.pairs is not None:
+        pick = jax.vmap(lambda k: jax.random.randint(k, (), 0, len(episodes.pairs)))(
+            episode_keys(jax.random.fold_in(key, CELLS_FOLD), ids)[:, 0])
+        cells = jnp.where(jnp.asarray(t.task[rows] == 0)[:, None], jnp.asarray(episodes.pairs)[pick], 0)
+    return episode_inputs(episode_keys(key, ids), t.task[rows], episodes.grids[t.variant[rows]], kappa,
+                          t.use_graph[rows], patience, t.edges_only[rows], t.cut_slack[rows], cells)
 
 
 def success_rates(episodes: Episodes, success, pruned) -> tuple[jax.Array, jax.Array]:
