@@ -183,7 +183,7 @@ def _batch_and_learner(name, **over):
     data = synthetic.point_walks(n_traj=20, t_len=60)
     ds = dsm.to_device(data)
     m = methods.get(name)
-    cfg = m.preset('ci', env='pointmaze-medium', conditioning='goal', **over)
+    cfg = m.preset('ci', env='pointmaze-medium', **{'conditioning': 'goal', **over})
     learner = m.make(cfg, 2, 2)
     state = learner.init(jax.random.PRNGKey(0))
     batch = goals.sample_gc(ds, jax.random.PRNGKey(3), 16, cfg.sampling)
@@ -213,6 +213,39 @@ def test_hiql_targets_high_on_the_goal_capped_subgoal_and_low_on_the_end_capped_
     assert np.any(np.asarray(b.subgoal_index) != np.asarray(jnp.minimum(b.index + 25, b.subgoal_index.max())))
 
 
+def test_hiql_both_levels_see_the_goal_direction_as_the_other_actors():
+    """With direction conditioning (the cpu preset's egocentric works the same, in the torso frame)
+    the high policy predicts [phi([s; w]), unit(w - s)] and the low policy acts on [phi([s; w]),
+    direction to w]: trained on the true subgoal, driven by the high policy's prediction at test time."""
+    learner, state, b = _batch_and_learner('hiql', conditioning='direction')
+    _, info = learner.loss(state.params, state.target, b, jax.random.PRNGKey(0))
+    p = state.params
+    rep, low, high = learner.modules['goal_rep'], learner.modules['low_actor'], learner.modules['high_actor']
+
+    def phi(s, g):
+        return rep.apply(p['goal_rep'], jnp.concatenate([s, g], -1))
+
+    def unit(s, g):
+        d = np.asarray(g)[:, :2] - np.asarray(s)[:, :2]
+        return d / (np.linalg.norm(d, axis=-1, keepdims=True) + 1e-6)
+
+    s = b.observations
+    low_in = jnp.concatenate([phi(s, b.low_goals), unit(s, b.low_goals)], -1)
+    mu, ls = low.apply(p['low_actor'], s, low_in)
+    assert float(info['low_actor/log_prob']) == pytest.approx(
+        float(jnp.mean(policy.log_prob(mu, ls, b.actions))), rel=1e-5)
+    mu_h, ls_h = high.apply(p['high_actor'], s, unit(s, b.actor_goals))  # the goal's direction, as every actor
+    assert mu_h.shape[-1] == 10 + 2
+    target = jnp.concatenate([phi(s, b.subgoals), unit(s, b.subgoals)], -1)
+    assert float(info['high_actor/log_prob']) == pytest.approx(
+        float(jnp.mean(policy.log_prob(mu_h, ls_h, target))), rel=1e-5)
+    act = jax.vmap(lambda o, g: learner.agent(p).controller(p, o, g, 0, None))(s, b.actor_goals)
+    pred = np.asarray(mu_h)
+    sub = jnp.concatenate([networks.length_normalize(pred[:, :10]),
+                           pred[:, 10:] / (np.linalg.norm(pred[:, 10:], axis=-1, keepdims=True) + 1e-6)], -1)
+    np.testing.assert_allclose(act, low.apply(p['low_actor'], s, sub)[0], rtol=1e-4, atol=1e-6)
+
+
 def test_saw_bootstraps_from_the_sub_policy_at_the_goal_capped_subgoal():
     learner, state, b = _batch_and_learner('saw')
     _, info = learner.loss(state.params, state.target, b, jax.random.PRNGKey(0))
@@ -222,6 +255,40 @@ def test_saw_bootstraps_from_the_sub_policy_at_the_goal_capped_subgoal():
     mu_main = jax.vmap(lambda o, g: ag.controller(p, o, g, 0, None))(b.observations, b.actor_goals)
     mu_sub = sub.apply(p['sub_actor'], b.observations, b.subgoals)[0]
     assert float(info['waypoint/kl']) == pytest.approx(float(jnp.mean(jnp.sum((mu_main - mu_sub) ** 2, -1))), rel=1e-5)
+
+
+def test_saw_three_advantages_by_hand_and_a_sign_flip_of_each_fails():
+    """SAW's three weighted terms recomputed from its value: the sub-policy's AWR towards w with
+    V(s', w) - V(s, w), the main policy's one-step AWR towards g with V(s', g) - V(s, g), and the
+    bootstrap with V(w_g, g) - V(s, g). After 30 updates the values differ enough that each term with
+    its advantage's sign flipped is far from the loss SAW computes (the test can see a flip)."""
+    learner, state, b = _batch_and_learner('saw')
+    ds = dsm.to_device(synthetic.point_walks(n_traj=20, t_len=60))
+    state, _ = jax.jit(fit.chunk_step(learner.update, 30))(state, ds)
+    _, info = learner.loss(state.params, state.target, b, jax.random.PRNGKey(0))
+    p, m = state.params, learner.modules
+    rep, value, sub, actor = m['goal_rep'], m['value'], m['sub_actor'], m['actor']
+
+    def v(s, g):
+        return np.asarray(value.apply(p['value'], s, rep.apply(p['goal_rep'], jnp.concatenate([s, g], -1)))).mean(0)
+
+    def weighted(adv, per_sample, sign):
+        return float(np.mean(np.minimum(np.exp(3.0 * sign * adv), 100.0) * per_sample))
+
+    s, s1, act = b.observations, b.next_observations, b.actions
+    mu_s, ls_s = sub.apply(p['sub_actor'], s, b.low_goals)
+    logp_sub = -np.asarray(policy.log_prob(mu_s, ls_s, act))
+    mu, ls = actor.apply(p['actor'], s, rep.apply(p['actor_goal_rep'], jnp.concatenate([s, b.actor_goals], -1)))
+    logp = -np.asarray(policy.log_prob(mu, ls, act))
+    mu_w = sub.apply(p['sub_actor'], s, b.subgoals)[0]
+    sq = np.sum((np.asarray(mu) - np.asarray(mu_w)) ** 2, -1)
+    terms = {'sub_actor/loss': (v(s1, b.low_goals) - v(s, b.low_goals), logp_sub),
+             'actor/loss': (v(s1, b.actor_goals) - v(s, b.actor_goals), logp),
+             'waypoint/loss': (v(b.subgoals, b.actor_goals) - v(s, b.actor_goals), sq)}
+    for key, (adv, per) in terms.items():
+        got = float(info[key])
+        assert got == pytest.approx(weighted(adv, per, 1.0), rel=1e-4), key
+        assert abs(weighted(adv, per, -1.0) - got) > 0.01 * abs(got), f'{key}: a sign flip would pass unseen'
 
 
 @pytest.mark.parametrize('name', BASELINES)

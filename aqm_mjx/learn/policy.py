@@ -55,17 +55,30 @@ def body_frame(obs: jax.Array, v: jax.Array) -> jax.Array:
     return jnp.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1]], -1)
 
 
+def unit_direction(obs: jax.Array, goal: jax.Array) -> jax.Array:
+    """``[..., 2]`` the world-frame unit vector from the agent's x-y to the goal's."""
+    delta = goal[..., :2] - obs[..., :2]
+    return delta / (jnp.linalg.norm(delta, axis=-1, keepdims=True) + 1e-6)
+
+
+def direction_input(obs: jax.Array, unit: jax.Array, conditioning: str) -> jax.Array:
+    """The direction part of :func:`goal_input` for a world-frame unit vector ``unit [..., 2]``: the
+    vector itself (``'direction'``) or in the torso frame (``'egocentric'``); ``[..., 0]`` for ``'goal'``."""
+    if conditioning == 'goal':
+        return unit[..., :0]
+    return unit if conditioning == 'direction' else body_frame(obs, unit)
+
+
 def goal_input(obs: jax.Array, goal: jax.Array, conditioning: str) -> jax.Array:
     """What the policy sees of the goal: ``obs, goal [..., D]`` -> ``[..., G]`` (:func:`goal_input_size`)."""
     if conditioning == 'goal':
         return goal
     if conditioning not in CONDITIONING:
         raise ValueError(f'unknown goal conditioning {conditioning!r}; expected one of {CONDITIONING}')
-    delta = goal[..., :2] - obs[..., :2]
-    unit = delta / (jnp.linalg.norm(delta, axis=-1, keepdims=True) + 1e-6)
+    unit = unit_direction(obs, goal)
     if conditioning == 'direction':
         return unit
-    return jnp.concatenate([goal, body_frame(obs, unit)], axis=-1)
+    return jnp.concatenate([goal, direction_input(obs, unit, conditioning)], axis=-1)
 
 
 class GaussianPolicy(nn.Module):
