@@ -188,8 +188,11 @@ def _write_tables(out, spec, per_method, seed_ids, cfgs, log) -> dict:
     first = per_method[names[0]]
     rows = aggregate(per_method, seed_ids)
     tasks, episodes = first['tasks'], int(first['episodes'])
+    # each row's own config: the one its evaluation recorded (a method evaluated by an earlier run of this
+    # folder keeps what it ran with), the current one for evaluations that predate the record
+    configs = {n: per_method[n].get('config') or cfgs[n].to_dict() for n in names}
     result = dict(spec, methods=names, tasks=tasks, episodes=episodes, variants=first['variants'], rows=rows,
-                  configs={n: c.to_dict() for n, c in cfgs.items()})
+                  configs=configs, split=first.get('split'))
     _write(out, result, log)
     return result
 
@@ -210,7 +213,8 @@ def _write(out: str, result: dict, log) -> None:
 
 # what two comparison folders must share for their rows to sit in one table: the data (by SHA-256),
 # the request, and the episodes
-_SHARED = ('data_sha256', 'env', 'style', 'preset', 'seeds', 'eval_seed', 'shift', 'tasks', 'episodes', 'variants')
+_SHARED = ('data_sha256', 'env', 'style', 'preset', 'seeds', 'eval_seed', 'split', 'shift', 'tasks', 'episodes',
+           'variants')
 
 
 def merge(folders: Sequence[str], out: str, log=print) -> dict:

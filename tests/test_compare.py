@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from aqm_mjx import cli, compare, envs, files, run
+from aqm_mjx import cli, compare, envs, files, pipeline, run
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
 from aqm_mjx.evaluation import stats
@@ -154,7 +154,7 @@ def test_vmapped_seeds_equal_separate_runs_and_resume_after_an_interrupt(tmp_pat
                         [str(tmp_path / 'x0'), str(tmp_path / 'x1')], keys, progress=False, **QUIET)
 
 
-def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(tmp_path):
+def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(tmp_path, monkeypatch):
     _, path = _data(tmp_path)
     out = str(tmp_path / 'cmp')
     over = ['steps=100', 'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20']
@@ -168,10 +168,17 @@ def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(t
         assert fit.read_meta(os.path.join(out, 'train', 'gcbc', f'seed_{s}'))[1].seed == s
     stamp = {p: os.path.getmtime(p) for p in (os.path.join(out, 'eval', 'gcbc', 'results.json'),
                                               os.path.join(out, 'train', 'gcbc', 'seed_1', 'metrics.jsonl'))}
-    # adding a method to the same folder trains and evaluates only the new one
+    assert res['config'] == first['configs']['gcbc'] and res['split'] == first['split'] == 'report'
+    # adding a method to the same folder trains and evaluates only the new one; a default changed in
+    # between (here the ci preset's kappa) reaches the new method's row, and the finished row keeps
+    # the config it was evaluated with
+    ci = dict(pipeline.PRESETS['ci'], agent=dict(pipeline.PRESETS['ci']['agent'], kappa=0.7))
+    monkeypatch.setitem(pipeline.PRESETS, 'ci', ci)
     logs = []
     second = compare.compare('pointmaze-medium', ['gcbc', 'gcivl'], 2, out, preset='ci', dataset=path, overrides=over,
                              log=logs.append)
+    assert second['configs']['gcbc']['agent']['kappa'] == 0.0 and second['configs']['gcivl']['agent']['kappa'] == 0.7
+    assert second['configs']['gcbc'] == first['configs']['gcbc']
     assert 'gcbc: 2 seed(s) complete at step 100, not trained again' in logs
     assert any(ln.startswith('gcbc: evaluated already') for ln in logs)
     assert all(os.path.getmtime(p) == t for p, t in stamp.items())
