@@ -1,14 +1,22 @@
-"""Regression: per-episode success, prunes and keypoint counts of the three ways to run AQM.
+"""Regression: per-episode success, prunes and keypoint counts of the three ways to run AQM, and of
+the test-time agent on a case that reaches its goals.
 
 Recorded at a small fixed configuration (the ci preset at 100 updates, 2 tasks x 2 episodes,
 kappa 0 so that budgets are overrun) before the package was split into stage packages; the same
-seeds give the same values afterwards. ``tests/regression_values.json`` holds them. One change was
+seeds give the same values afterwards (on the ``dev`` episodes, which were the only ones then).
+``tests/regression_values.json`` holds them. One change was
 intended and recorded: ``aqm-mjx evaluate`` now splits its seed into map and episode keys with
 ``stage_keys`` as ``aqm-mjx run`` does (it used ``PRNGKey(seed)`` for both), so its values now
 equal the step-by-step run's. When AQM's defaults became SAW's subgoal cap and OGBench's
 initialiser, the test kept the values by asking for the old ones (``subgoal_cap=end``,
 ``initializer=lecun``): it checks that the three paths agree and that refactors change nothing,
 not the defaults.
+
+The learned cases reach no goal at that scale, so a change that broke reaching goals would pass
+them; ``oracle_case`` adds one that does: the exact maze distance and a BFS point controller
+(:func:`aqm_mjx.agent.oracle.oracle_agent`) on pointmaze-medium, the unchanged maze and two closed
+corridors, with the AQM row (fixed budget, parallel cuts), no pruning, the paper's rule and the
+stall rule; recorded when the paper's rule and the leg kinds joined the agent.
 """
 
 import json
@@ -19,9 +27,13 @@ import numpy as np
 import pytest
 
 from aqm_mjx import cli, envs, pipeline, run
+from aqm_mjx.agent import oracle
+from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
+from aqm_mjx.envs import mazes, shifts
 from aqm_mjx.evaluation import evaluate as evaluation
+from aqm_mjx.evaluation import protocol
 
 SEED = 3
 RECORDED = json.load(open(os.path.join(os.path.dirname(__file__), 'regression_values.json')))
@@ -47,7 +59,7 @@ def config(env_name, horizon):
     return cfg.with_overrides(['train.subgoal_cap=end', 'train.initializer=lecun', 'train.steps=100',
                                'train.updates_per_call=50', 'train.log_every=50',
                                'train.checkpoint_every=50', 'protocol.tasks=1,2', f'protocol.horizon={horizon}',
-                               'protocol.ablations=no-pruning,flat'])
+                               'protocol.ablations=no-pruning,flat', 'protocol.split=dev'])
 
 
 def run_three_paths(env_name, tmp, monkeypatch):
@@ -68,7 +80,7 @@ def run_three_paths(env_name, tmp, monkeypatch):
     run.run_stepwise(cfg, run_dir, dataset=path, log=lambda *_: None)
     stepwise = caught[-1]
     argv = ['evaluate', '--checkpoint', os.path.join(run_dir, 'train'), '--dataset', path, '--tasks', '1', '2',
-            '--horizon', str(horizon), '--ablations', 'no-pruning', 'flat', '--seed', str(SEED),
+            '--horizon', str(horizon), '--ablations', 'no-pruning', 'flat', '--seed', str(SEED), '--split', 'dev',
             '--out', os.path.join(tmp, 'ev')]
     assert cli.main(argv) == 0  # the ci preset from the checkpoint, these options on top
     command = caught[-1]
@@ -96,3 +108,33 @@ def test_same_seeds_give_the_recorded_values(env_name, tmp_path, monkeypatch):
     assert got['evaluate'] == got['stepwise']
     assert got['evaluate'] == {k: want['evaluate_after_key_split'][k] for k in ('success', 'pruned', 'keypoints')}
     assert sum(want['stepwise']['pruned']) > 0  # kappa 0 overruns budgets: the values cover pruning
+
+
+ORACLE_ROWS = ('no-pruning', 'paper=0.25', 'stall=40')
+
+
+def oracle_case() -> dict:
+    """Per-episode success, legs cut and edges removed of the oracle agent (no learning) on
+    pointmaze-medium: the unchanged maze, close-3-3 and close-5-3 (task 4's route), 5 tasks x 2
+    dev episodes of PRNGKey(SEED), 400 steps; the AQM row at the oracle's kappa 0.25 with parallel cuts 0.6."""
+    base = mazes.layout('medium')
+    closed = base.copy()
+    closed[5, 3] = 1
+    env = envs.make('pointmaze-medium')
+    agent, graph, match = oracle.oracle_agent(env, base, delta=4.0, speed=0.15)
+    proto = protocol.ProtocolConfig(episodes=2, horizon=400, ablations=ORACLE_ROWS, split='dev', envs=256)
+    variants = {'base': base, 'close-3-3': shifts.variant('medium', 'close-3-3'), 'close-5-3': closed}
+    res = evaluation.evaluate(env, agent, graph, AgentConfig(**match, cut_slack=0.6), proto, variants,
+                              key=jax.random.PRNGKey(SEED), progress=False)
+    return dict(agents=res.agents, success=res.success.astype(int).tolist(), pruned=res.pruned.tolist(),
+                removed=res.removed.tolist(), keypoints=int(graph.mask.sum()))
+
+
+def test_the_oracle_agent_gives_the_recorded_values_and_reaches_goals():
+    got = oracle_case()
+    want = RECORDED['oracle-pointmaze-medium']
+    assert got == want
+    success, pruned = np.asarray(got['success']), np.asarray(got['pruned'])
+    n = len(success) // len(got['agents'])  # episodes per row: 3 layouts x 5 tasks x 2
+    assert success.sum() >= 0.5 * len(success) and pruned.sum() > 0  # goals reached, edges cut
+    assert pruned[n:2 * n].sum() == 0  # the no-pruning row never cuts
