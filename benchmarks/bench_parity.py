@@ -1,7 +1,9 @@
-"""Parity with OGBench's reference agents: our GCIVL, GCIQL, CRL and HIQL against
-``seohongpark/ogbench``'s ``impls/agents`` on the same parameters and the same batch.
+"""Parity with the reference agents: our GCIVL, GCIQL, CRL and HIQL against
+``seohongpark/ogbench``'s ``impls/agents``, and our SAW against ``johnlyzhou/saw``'s
+(``impls/agents/saw.py``, a fork of OGBench's ``impls``), on the same parameters and the same batch.
 
     python benchmarks/bench_parity.py --reference /path/to/ogbench    # a checkout, or a bare git copy
+    python benchmarks/bench_parity.py --reference OGBENCH --saw-reference /path/to/saw --methods gcivl saw
     python benchmarks/bench_parity.py                                 # no copy given: says so and skips
 
 For each method the reference agent is built with OGBench's ``create`` (its config from
@@ -40,10 +42,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-METHODS = ('gcivl', 'gciql', 'crl', 'hiql')
+METHODS = ('gcivl', 'gciql', 'crl', 'hiql', 'saw')
 # the reference's info names -> ours, after the module prefix (value/value_loss -> value/loss)
 NAMES = {'value_loss': 'loss', 'actor_loss': 'loss', 'critic_loss': 'loss', 'contrastive_loss': 'loss',
-         'bc_log_prob': 'log_prob', 'adv': 'adv_mean'}
+         'bc_log_prob': 'log_prob', 'adv': 'adv_mean', 'awr_loss': 'loss', 'waypoint_loss': 'loss', 'kld': 'kl',
+         'wadv': 'adv_mean'}
+# SAW's reference modules (and info prefixes) -> ours, where they are named apart (its target sub-policy);
+# our module names are unique across methods, so the parameter map applies them to every method
+MODULES = {'low_actor': 'sub_actor', 'actor_goal_rep_def': 'actor_goal_rep'}
+SAW_ONLY = ('saw',)  # methods whose reference is johnlyzhou/saw's fork, not OGBench
 
 
 # ------------------------------------------------------------------------ the reference's imports
@@ -95,11 +102,20 @@ def reference_impls(path: str | None) -> tuple[str | None, str]:
 
 
 def import_reference(root: str):
-    """The reference's ``agents`` package (its ``impls/`` on ``sys.path``, ``distrax`` stood in)."""
+    """The reference's ``agents`` package (its ``impls/`` on ``sys.path``, ``distrax`` stood in). A
+    second reference (SAW's fork) is imported apart: the ``agents`` and ``utils`` packages of one
+    are moved out of ``sys.modules`` while the other's load, and put back after."""
     sys.modules.setdefault('distrax', _gaussian_standin())
+    held = {k: sys.modules.pop(k) for k in list(sys.modules) if k.split('.')[0] in ('agents', 'utils')}
     sys.path.insert(0, os.path.join(root, 'impls'))
-    import agents  # pylint: disable=import-outside-toplevel,import-error
-
+    try:
+        import agents  # pylint: disable=import-outside-toplevel,import-error
+    finally:
+        sys.path.remove(os.path.join(root, 'impls'))
+        for k in [k for k in sys.modules if k.split('.')[0] in ('agents', 'utils')]:
+            if k in held:
+                sys.modules[k] = held.pop(k)
+        sys.modules.update(held)
     return agents
 
 
@@ -126,8 +142,9 @@ def describe(tree) -> list[str]:
 
 def reference_path(kind: str, module: str, rest: tuple) -> tuple:
     """Where our leaf ``(params|target)/module/params/...rest`` lives in the reference's tree."""
-    top = f'modules_{"target_" if kind == "target" else ""}{module}'
-    if module == 'goal_rep' and rest[:1] == ('MLP_0',):  # HIQL: nn.Sequential([MLP, LengthNormalize]) there
+    theirs = {v: k for k, v in MODULES.items()}.get(module, module)
+    top = f'modules_{"target_" if kind == "target" else ""}{theirs}'
+    if module in ('goal_rep', 'actor_goal_rep') and rest[:1] == ('MLP_0',):  # nn.Sequential([MLP, LengthNormalize])
         rest = ('layers_0',) + rest[1:]
     return (top,) + rest
 
@@ -175,13 +192,16 @@ def configs(name: str, ref_module, hidden=(32, 32, 32), perturb=()):
     if name == 'crl':
         ref.update(latent_dim=16)
         over.update(latent=16)
-    if name == 'hiql':
+    if name in ('hiql', 'saw'):
         ref.update(rep_dim=10)
+    if name == 'saw':
+        ref.update(low_actor_hidden_dims=hidden, share_goal_rep=False)
     ours = methods.get(name).preset('paper', **over)
     if perturb:  # --set: a deliberate difference, to see the check fail
         return ref, ours.with_overrides([x for x in perturb if x.split('=')[0] in ours.to_dict()])
     shared = dict(lr='lr', discount='discount', tau='tau', expectile='expectile', alpha='alpha',
-                  high_alpha='high_alpha', low_alpha='low_alpha', rep_dim='rep_dim', layer_norm='layer_norm')
+                  high_alpha='high_alpha', low_alpha='low_alpha', rep_dim='rep_dim', layer_norm='layer_norm',
+                  awr_alpha='awr_alpha', kl_alpha='kl_alpha', const_std='const_std')
     for ours_f, ref_f in shared.items():
         if hasattr(ours, ours_f) and ref_f in ref:
             assert getattr(ours, ours_f) == ref[ref_f], (name, ours_f, getattr(ours, ours_f), ref[ref_f])
@@ -229,7 +249,8 @@ def compare_method(name: str, ref_agents, b: int = 64, obs: int = 29, act: int =
     ref_loss, ref_info = agent.total_loss(ref_batch, agent.network.params, rng=key)
     loss, info = jax.jit(learner.loss)(state.params, state.target, batch, key)
     named = {k: NAMES.get(k.split('/', 1)[1], k.split('/', 1)[1]) for k in ref_info}
-    named = {k: f'{k.split("/", 1)[0]}/{v}' for k, v in named.items()}
+    prefixes = MODULES if name == 'saw' else {}  # SAW's low_actor is our sub_actor; HIQL's is our low_actor
+    named = {k: f'{prefixes.get(k.split("/", 1)[0], k.split("/", 1)[0])}/{v}' for k, v in named.items()}
     shared = sorted(k for k in ref_info if named[k] in info)
     rows = [('loss (total)', float(ref_loss), float(loss))] + [(k, float(ref_info[k]), float(info[named[k]]))
                                                               for k in shared]
@@ -258,6 +279,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--reference', default=os.environ.get('AQM_OGBENCH_REF'),
                    help='a checkout of seohongpark/ogbench, or a bare git copy of it')
+    p.add_argument('--saw-reference', default=os.environ.get('AQM_SAW_REF'),
+                   help="a checkout of johnlyzhou/saw (OGBench's impls with SAW), or a bare git copy; SAW is "
+                        'compared when it is given')
     p.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS)
     p.add_argument('--loss-tol', type=float, default=1e-5, help='largest relative difference of a loss')
     p.add_argument('--param-tol', type=float, default=1e-6, help='largest absolute difference of a parameter')
@@ -273,15 +297,27 @@ def main(argv=None) -> int:
     except ImportError:
         print('bench_parity: skipped: the reference agents import ml_collections; pip install ml-collections')
         return 0
-    ref = import_reference(root)
+    refs = {n: None for n in a.methods}
+    ogb = import_reference(root)
+    for n in a.methods:
+        refs[n] = ogb.agents if n not in SAW_ONLY else None
+    if any(n in SAW_ONLY for n in a.methods):
+        saw_root, saw_why = reference_impls(a.saw_reference) if a.saw_reference else (None, 'no --saw-reference')
+        if saw_root is None:
+            print(f'bench_parity: SAW skipped: {saw_why} (a copy of johnlyzhou/saw)')
+        else:
+            saw_agents = import_reference(saw_root).agents
+            for n in SAW_ONLY:
+                refs[n] = saw_agents
+    methods_run = [n for n in a.methods if refs[n] is not None]
     if a.set:
         print(f'our configs changed on purpose: {", ".join(a.set)}')
     print(f'reference: {root}/impls (distrax stood in by a diagonal Gaussian); jax {jax.__version__} on '
           f'{jax.devices()[0].platform}; batch 64, 29-d observations, 8-d actions, widths 3 x 32')
     failed = []
-    for name in a.methods:
-        r = compare_method(name, ref.agents, perturb=a.set)
-        print(f'\n== {name}')
+    for name in methods_run:
+        r = compare_method(name, refs[name], perturb=a.set)
+        print(f'\n== {name} (reference: {sys.modules[refs[name][name].__module__].__file__})')
         print(f'{"quantity (reference name)":<28}{"reference":>16}{"ours":>16}{"rel. diff":>12}')
         worst = 0.0
         for k, x, y in r['rows']:
