@@ -5,26 +5,29 @@
 
 For every checkpoint (a seed), with one map (``stage_keys(PRNGKey(--seed))``, as ``aqm-mjx evaluate``):
 
-1. **Calibration pass**: the agent without pruning (kappa = inf) on the *training* layout, on
-   episodes of another key than the evaluation's (``--calibration-episodes`` per task). Every leg it
-   completes is traversable; :func:`aqm_mjx.evaluation.calibration.calibrate` turns their (d, steps,
-   longest stall) into the fixed rule's ``kappa`` and the stall rule's ``patience`` that would have
-   cut a fraction ``--false-alarm`` of them.
+1. **Calibration pass**: the agent without pruning (kappa = inf) on the *training* layout,
+   ``--calibration-episodes`` episodes between start and goal cells that no evaluation task uses, on
+   their own key (:func:`aqm_mjx.evaluation.protocol.calibration_episodes`). Every leg it completes is
+   traversable; :func:`aqm_mjx.evaluation.calibration.calibrate` turns their (d, steps, longest
+   stall, kind) into the fixed rule's ``kappa``, the paper's rule's ``kappa_edges`` (keypoint edges
+   alone) and the stall rule's ``patience`` that would have cut a fraction ``--false-alarm`` of them.
    (The same pass as ``protocol.calibrate`` runs before any evaluation; this script keeps its own
    to put several rates and both rules side by side.)
-2. **Evaluation** on the same episodes for every row: the paper's fixed rule at the preset's kappa
-   (``aqm``), the fixed rule at the calibrated kappa, the stall rule at the calibrated patience, no
-   pruning and the flat policy (unless ``--no-flat``); layouts: the training layout and the
-   closed-corridor layouts of the shift suite (``--shift all`` adds the opened walls).
+2. **Evaluation** on the same episodes (``--split``: ``report`` by default) for every row: the
+   fixed rule on every leg at the preset's kappa (``aqm``), the paper's rule (keypoint edges alone,
+   one cut) at the preset's kappa and at its calibrated kappa, the fixed rule at the calibrated
+   kappa, the stall rule at the calibrated patience, no pruning and the flat policy (unless
+   ``--no-flat``); layouts: the training layout and the closed-corridor layouts of the shift suite
+   (``--shift all`` adds the opened walls).
 3. With ``--cut-slack S``: the calibrated rows again with parallel cuts at slack S (an overrun of
    z_i -> z_j also cuts the edges from within S w(i, j) of z_i to within S w(i, j) of z_j,
    ``AgentConfig.cut_slack``).
 
 The rows of steps 1-2 use the paper's single cut (``cut_slack`` 0) whatever the preset says (the
 ``cpu`` preset's AQM row cuts in parallel at 0.6: ``--cut-slack 0.6`` gives that row).
-``--short`` keeps only the rows issue 17's acceptance names, about 2.3x fewer episodes: the paper's
-fixed rule at the preset's kappa, no pruning (and flat), and the calibrated stall rule with each
-``--cut-slack`` (with the single cut when none is given).
+``--short`` keeps only the paper's rule (at the preset's kappa and calibrated), no pruning (and
+flat), and the calibrated stall rule with each ``--cut-slack`` (with the single cut when none is
+given): the default's comparison rows.
 
 Prints per row and layout: success pooled over seeds with its 95% Wilson interval, the per-seed
 means, the legs cut per episode (overruns) and the keypoint edges removed per episode (more than the
@@ -36,6 +39,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import sys
 import time
 
 import jax
@@ -81,32 +85,40 @@ def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> di
                     if k == 'base' or (a.shift == 'closed' and k.startswith('close')) or a.shift == 'all'}
     else:
         variants = {k: shifts.variant(env.maze, k) for k in layouts}
-    # 1. calibration: no pruning, training layout, other episodes
+    # 1. calibration: no pruning, training layout, cells no task uses, its own key (protocol.calibrate's pass)
     t0 = time.perf_counter()
-    # (the episodes of protocol.calibrate's pass: protocol.calibration_protocol, fold CALIBRATION_FOLD)
-    cal_proto = protocol.calibration_protocol(dataclasses.replace(cfg.protocol,
-                                                                  calibration_episodes=a.calibration_episodes))
+    base_proto = dataclasses.replace(cfg.protocol, calibration_episodes=a.calibration_episodes)
+    cal_proto = protocol.calibration_protocol(base_proto)
+    cal_eps = protocol.calibration_episodes(env, base_proto, shifts.variant(env.maze, train_layout))
     cal = evaluate.evaluate(env, trained.agent, graph, dataclasses.replace(cfg.agent, kappa=float('inf'), patience=0.0),
-                            cal_proto, {train_layout: shifts.variant(env.maze, train_layout)},
-                            key=jax.random.fold_in(k_eval, protocol.CALIBRATION_FOLD), progress=a.progress)
-    legs = calibration.legs_of(cal, 'aqm', train_layout)
+                            cal_proto, key=jax.random.fold_in(k_eval, protocol.CALIBRATION_FOLD), progress=a.progress,
+                            episodes=cal_eps)
+    legs = calibration.legs_of(cal, 'aqm')
     cals = [{k: np.asarray(v).tolist() for k, v in calibration.calibrate(legs, q).items()} for q in a.false_alarm]
     if not cals[0]['legs']:
         raise SystemExit(f'{ckpt}: the calibration pass completed no leg on {train_layout} ({cal_proto.episodes} '
                          'episodes per task): nothing to calibrate from; give more --calibration-episodes or a '
                          'model that reaches its keypoints')
     settings = [(round(float(c['kappa']), 2), float(round(c['patience']))) for c in cals]
+    paper_kappas = [round(float(c['kappa_edges']), 2) for c in cals]
     c = cals[0]
-    log(f'{ckpt}: {m["keypoints"]} keypoints; calibration pass {cal_proto.episodes} ep/task, {c["legs"]} legs, '
+    log(f'{ckpt}: {m["keypoints"]} keypoints; calibration pass {cal_proto.episodes} episodes, {c["legs"]} legs, '
         f'steps/d q50 {c["ratio_q"][0]:.2f} q95 {c["ratio_q"][2]:.2f}, longest stall q95 {c["stall_q"][2]:.0f} -> '
-        + ', '.join(f'kappa {k}, patience {p:.0f} at {q:.1%} false alarms' for q, (k, p) in zip(a.false_alarm, settings))
+        + ', '.join(f'kappa {k}, patience {p:.0f}, paper kappa {pk} at {q:.1%} false alarms'
+                    for q, (k, p), pk in zip(a.false_alarm, settings, paper_kappas))
         + f' ({time.perf_counter() - t0:.0f} s)')
     # 2. evaluation: every rule on the same episodes
     several = len(a.false_alarm) > 1
-    ablations, names = [], {'aqm': f'fixed, preset kappa {cfg.agent.kappa:g}'}
-    for q, (kappa_c, patience_c) in zip(a.false_alarm, settings):
+    ablations, names = [], {'aqm': f'fixed on every leg, preset kappa {cfg.agent.kappa:g}'}
+    paper_fixed = f'paper={cfg.agent.kappa:g}'
+    ablations.append(paper_fixed)
+    names[paper_fixed] = f"paper's rule, preset kappa {cfg.agent.kappa:g}"
+    for q, (kappa_c, patience_c), pk in zip(a.false_alarm, settings, paper_kappas):
         # rows are named by rule (and rate), not by the calibrated value, which differs from seed to seed
         at = f' at {q:.1%}' if several else ''
+        if f'paper={pk:g}' not in ablations:
+            ablations.append(f'paper={pk:g}')
+            names[ablations[-1]] = f"paper's rule, calibrated kappa{at}"
         if a.short:  # the stall rule alone, and only when no parallel-cut pass gives it below
             if not a.cut_slack:
                 ablations.append(f'stall={patience_c:g}')
@@ -116,7 +128,8 @@ def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> di
         names[ablations[-2]], names[ablations[-1]] = f'fixed, calibrated kappa{at}', f'stall, calibrated patience{at}'
     ablations += ['no-pruning'] + (['flat'] if a.flat else [])
     names.update({'no-pruning': 'no pruning', 'flat': 'flat'})
-    proto = dataclasses.replace(cfg.protocol, episodes=a.episodes, ablations=tuple(dict.fromkeys(ablations)))
+    proto = dataclasses.replace(cfg.protocol, episodes=a.episodes, ablations=tuple(dict.fromkeys(ablations)),
+                                split=a.split)
     single = dataclasses.replace(cfg.agent, patience=0.0, cut_slack=0.0)  # the paper's rule: one cut per overrun
     res = evaluate.evaluate(env, trained.agent, graph, single, proto, variants, key=k_eval, progress=a.progress)
     rows = {}
@@ -147,7 +160,8 @@ def one_seed(ckpt, a, log=print, train_layout: str = 'base', layouts=None) -> di
             collect(res_s, names_s)
     kappa_c, patience_c = settings[0]
     return dict(checkpoint=ckpt, keypoints=m['keypoints'], calibration=c, kappa=kappa_c, patience=patience_c,
-                calibrations=[dict(false_alarm=q, kappa=k, patience=p) for q, (k, p) in zip(a.false_alarm, settings)],
+                calibrations=[dict(false_alarm=q, kappa=k, patience=p, paper_kappa=pk)
+                              for q, (k, p), pk in zip(a.false_alarm, settings, paper_kappas)],
                 rows=rows, variants=res.variants, timing=res.timing)
 
 
@@ -156,7 +170,10 @@ def main():
     p.add_argument('--checkpoint', action='append', required=True, help='a run folder (repeat: one per seed)')
     p.add_argument('--dataset', help="default: the dataset recorded in each run's config.json")
     p.add_argument('--episodes', type=int, default=20, help='evaluation episodes per task, row and layout')
-    p.add_argument('--calibration-episodes', type=int, default=4, help='calibration episodes per task')
+    p.add_argument('--calibration-episodes', type=int, default=100,
+                   help='calibration episodes (between cells no evaluation task uses)')
+    p.add_argument('--split', default='report', choices=protocol.SPLITS,
+                   help="evaluation episodes: 'report' (tables) or 'dev' (choosing settings)")
     p.add_argument('--false-alarm', type=float, nargs='+', default=[0.02],
                    help='fraction of traversable legs cut; several rates add a calibrated pair of rows each')
     p.add_argument('--shift', choices=('base', 'closed', 'all'), default='closed',
@@ -217,7 +234,8 @@ def main():
         os.makedirs(a.out, exist_ok=True)
         meta = [dict(checkpoint=s['checkpoint'], kappa=s['kappa'], patience=s['patience'], calibrations=s['calibrations'],
                      calibration=s['calibration'], keypoints=s['keypoints']) for s in seeds]
-        finish([dict(seeds=meta, rows=out_rows, episodes=a.episodes, false_alarm=a.false_alarm)],
+        finish([dict(seeds=meta, rows=out_rows, episodes=a.episodes, false_alarm=a.false_alarm, split=a.split,
+                     command=' '.join(sys.argv))],
                os.path.join(a.out, 'rows.json'))
     else:
         finish([], None)

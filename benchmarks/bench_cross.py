@@ -54,7 +54,9 @@ def parse(argv=None):
     p.add_argument('--collect-episodes', type=int, default=100, help='navigate episodes per training layout')
     p.add_argument('--collect-batch', type=int, default=55)
     p.add_argument('--episodes', type=int, default=10, help='evaluation episodes per task, rule and layout')
-    p.add_argument('--calibration-episodes', type=int, default=4, help='calibration episodes per task')
+    p.add_argument('--calibration-episodes', type=int, default=100,
+                   help='calibration episodes (between cells no evaluation task uses)')
+    p.add_argument('--split', default='report', choices=('dev', 'report'), help='evaluation episodes')
     p.add_argument('--false-alarm', type=float, default=0.02, help='fraction of traversable legs cut')
     p.add_argument('--seed', type=int, default=0, help='map and episode keys: stage_keys(PRNGKey(seed))')
     p.add_argument('--set', action='append', default=[], help='map/agent/protocol override, e.g. protocol.backend=ogbench')
