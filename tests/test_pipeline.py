@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from aqm_mjx import envs, pipeline
+from aqm_mjx.agent import rules
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
 from aqm_mjx.evaluation import evaluate, protocol
@@ -32,7 +33,8 @@ def tiny_config():
     # edges pruned, and both paths calibrate
     return pipeline.RunConfig.preset('ci', env='pointmaze-medium').with_overrides(
         ['train.steps=100', 'train.updates_per_call=50', 'train.log_every=50', 'train.checkpoint_every=50',
-         'protocol.tasks=1,2', 'protocol.ablations=flat', 'protocol.calibrate=fixed', 'protocol.false_alarm=0.5',
+         'protocol.tasks=1,2', 'protocol.ablations=flat,paper=cal', 'protocol.calibrate=fixed',
+         'protocol.false_alarm=0.5',
          'protocol.calibration_episodes=3'])
 
 
@@ -75,8 +77,15 @@ def test_one_program_equals_the_step_by_step_path(tmp_path, one_program):
     assert cal['kappa'] == pytest.approx(kappa, abs=1e-6)
     assert float(out['calibration']['kappa']) == pytest.approx(kappa, abs=1e-6)
     assert int(out['calibration']['legs']) == len(legs)
+    # the paper=cal row: the kappa of the keypoint edges alone, on both paths
+    edges = legs[legs[:, 3] == rules.LEG_EDGE]
+    kappa_edges = (max(round(float(np.quantile(edges[:, 1] / edges[:, 0], 0.5)) - 1, 2), 0.0) if len(edges)
+                   else cfg.agent.kappa)
+    assert cal['kappa_edges'] == pytest.approx(kappa_edges, abs=1e-6) == float(out['calibration']['kappa_edges'])
     res = evaluate.evaluate(env, agent, graph, dataclasses.replace(cfg.agent, kappa=cal['kappa']),
-                            cfg.with_overrides(['protocol.envs=5']).protocol, progress=False, key=k_eval)
+                            cfg.with_overrides(['protocol.envs=5']).protocol, progress=False, key=k_eval,
+                            budgets=cal['budgets'])
+    assert res.agents == ['aqm', 'flat', 'paper=cal']
     assert int(out['keypoints']) == int(kp.count) >= 2
     assert_params_close(out['params'], trained.params)
     np.testing.assert_array_equal(out['episode_success'], res.success)
