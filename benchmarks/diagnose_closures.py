@@ -120,6 +120,9 @@ def main():
     p.add_argument('--split', default='dev', choices=protocol.SPLITS)
     p.add_argument('--set', action='append', default=[], help='map/agent/protocol override (section.field=value)')
     p.add_argument('--workers', type=int, default=0, help="processes stepping OGBench's environments")
+    p.add_argument('--stall-scale', type=float, default=0.0,
+                   help='> 0: the AQM row on the stall rule at patience C x the 90th percentile of the longest '
+                        "stall in the calibration pass (instead of the pass's false-alarm quantile)")
     p.add_argument('--out', default=None)
     a = p.parse_args()
     env, _, cfg, path = prepare_evaluation(a.checkpoint, None, a.dataset, 'base', a.set)
@@ -135,6 +138,10 @@ def main():
     if protocol.needs_calibration(cfg.protocol):
         cal = calibration_pass(env, trained.agent, graph, cfg.agent, cal_proto, k_eval, progress=False)
         agent_cfg = dataclasses.replace(cfg.agent, kappa=cal['kappa'], patience=cal['patience'])
+        if a.stall_scale > 0:  # a multiple of the stall scale (q90: stable across keys), not a tail quantile
+            q90 = cal['stall_q'][1]  # calibration.QUANTILES = (0.5, 0.9, 0.95, 0.99)
+            agent_cfg = dataclasses.replace(agent_cfg, patience=float(max(1, round(a.stall_scale * q90))))
+            print(f'stall scale: q90 of the longest stall {q90:g} -> patience {agent_cfg.patience:g}')
     print(f'{a.checkpoint}: {m["keypoints"]} keypoints; calibration ' +
           ('none' if cal is None else f'{cal["episodes"]} episodes, {cal["legs"]} legs -> kappa {cal["kappa"]:g}, '
                                       f'patience {cal["patience"]:g}, paper kappa {cal["kappa_edges"]:g}') +
