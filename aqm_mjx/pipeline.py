@@ -169,8 +169,10 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
             count, overflow = kp.count, kp.overflow
         else:
             graph, count, overflow = None, jnp.int32(0), jnp.bool_(False)
-        inputs, cal = proto.table_inputs(episodes, k_eval), {}
-        if calibrates:  # CALIBRATE: the budgets from the legs of a no-pruning pass
+        cal = {}
+        if not calibrates:
+            inputs = proto.table_inputs(episodes, k_eval)
+        else:  # CALIBRATE: the budgets from the legs of a no-pruning pass
             c = calibration.calibrate(rollout(params, graph, proto.table_inputs(
                 cal_episodes, jax.random.fold_in(k_eval, proto.CALIBRATION_FOLD)))['legs'], cfg.protocol.false_alarm)
             kappa, patience = calibration.budget(c, rule, cfg.agent.kappa, cfg.agent.patience)

@@ -36,7 +36,7 @@ class EpisodeInputs(NamedTuple):
     use_graph: jax.Array  # bool [B]: False: the flat policy
     patience: jax.Array  # float32 [B]: 0 the fixed budget (1 + kappa) d; > 0 the stall rule's patience
     edges_only: jax.Array  # bool [B]: budget keypoint edges alone (the paper's rule), not start and goal legs
-    cut_slack: jax.Array  # float32 [B]: parallel cuts (0: the overrun edge alone)
+    cut_slack: jax.Array  # float32 [B]: parallel cuts (0: the overrun edge alone); read when AgentConfig.cut_slack > 0
     cells: jax.Array  # int32 [B, 4]: start and goal cells (i, j, i, j) of task-0 episodes (calibration)
 
 
@@ -114,8 +114,12 @@ def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
         # PLAN: switch, time and prune per environment, then replan where an edge was cut; an
         # environment whose episode is done (at the goal, or at its limit) keeps its agent as it
         # was, so that nothing is timed, cut or logged after the end
-        stepped = jax.vmap(lambda a, s, kp, p, e, c: agent_step(d, graph, cfg, a, s, kp, p, e, c))(
-            agents, enc(obs), kappa, patience, edges, inputs.cut_slack)
+        if cfg.cut_slack:  # EXTENSION: parallel cuts, each row at its own slack
+            stepped = jax.vmap(lambda a, s, kp, p, e, c: agent_step(d, graph, cfg, a, s, kp, p, e, c))(
+                agents, enc(obs), kappa, patience, edges, inputs.cut_slack)
+        else:  # no row cuts in parallel (every row's slack is 0): the neighbourhoods are not computed
+            stepped = jax.vmap(lambda a, s, kp, p, e: agent_step(d, graph, cfg, a, s, kp, p, e, 0.0))(
+                agents, enc(obs), kappa, patience, edges)
         new = replan(freeze(~done, agents, stepped), slots)
         if cfg.keep_route:  # EXTENSION: a cut that leaves no route to the goal is not made
             new = jax.vmap(keep_last_route)(agents, new)

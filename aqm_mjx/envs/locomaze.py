@@ -339,10 +339,9 @@ class MazeEnv:
             tid = self._check_task_id(task_id)
         init_c, goal_c = self._task_init_xy[jnp.maximum(tid, 1) - 1], self._task_goal_xy[jnp.maximum(tid, 1) - 1]
         if cells is not None:
-            c = jnp.asarray(cells, jnp.float32)
-            to_xy = lambda ij: jnp.stack([ij[1], ij[0]]) * mazes.MAZE_UNIT - mazes.MAZE_OFFSET  # noqa: E731
-            init_c = jnp.where(tid > 0, init_c, to_xy(c[:2]))
-            goal_c = jnp.where(tid > 0, goal_c, to_xy(c[2:]))
+            c = mazes.ij_to_xy(jnp.reshape(jnp.asarray(cells), (2, 2)), xp=jnp)  # [start, goal] cell centres
+            init_c = jnp.where(tid > 0, init_c, c[0])
+            goal_c = jnp.where(tid > 0, goal_c, c[1])
         noise = mazes.START_GOAL_NOISE * mazes.MAZE_UNIT / 4
         init_xy = init_c + jax.random.uniform(k_init, (2,), minval=-noise, maxval=noise)
         goal_xy = goal_c + jax.random.uniform(k_goal, (2,), minval=-noise, maxval=noise)

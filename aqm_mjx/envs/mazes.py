@@ -117,10 +117,11 @@ def layout(maze: str) -> np.ndarray:
     return np.array([[int(c) for c in r] for r in rows], dtype=np.int8)
 
 
-def ij_to_xy(ij) -> np.ndarray:
-    """Cell centre(s): ``ij [..., 2]`` -> ``xy [..., 2]`` (x from column j, y from row i)."""
-    ij = np.asarray(ij, dtype=np.float64)
-    return np.stack([ij[..., 1] * MAZE_UNIT - MAZE_OFFSET, ij[..., 0] * MAZE_UNIT - MAZE_OFFSET], axis=-1)
+def ij_to_xy(ij, xp=np):
+    """Cell centre(s): ``ij [..., 2]`` -> ``xy [..., 2]`` (x from column j, y from row i); ``xp=jnp``
+    inside a jitted program (float32 there, float64 with numpy)."""
+    ij = xp.asarray(ij, dtype=np.float64 if xp is np else xp.float32)
+    return xp.stack([ij[..., 1] * MAZE_UNIT - MAZE_OFFSET, ij[..., 0] * MAZE_UNIT - MAZE_OFFSET], axis=-1)
 
 
 def xy_to_ij(xy):

@@ -47,7 +47,7 @@ def valid(legs) -> jnp.ndarray:
 
 
 def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
-    """The budget settings that cut a fraction ``false_alarm`` of the legs in ``legs [..., 3]``.
+    """The budget settings that cut a fraction ``false_alarm`` of the legs in ``legs [..., 4]``.
 
     Args:
         legs: ``(d, steps, longest stall[, kind])`` per leg, any leading shape (e.g. ``[E, MAX_LEGS,
