@@ -217,6 +217,30 @@ _SHARED = ('data_sha256', 'env', 'style', 'preset', 'seeds', 'eval_seed', 'split
            'variants')
 
 
+def _read_comparison(folder: str) -> dict:
+    """``FOLDER/results.json`` of a finished comparison, its parts that :func:`merge` reads checked
+    (types and the rows and configs of every method), the file named on any fault."""
+    path = os.path.join(folder, 'results.json')
+    r = files.read_json(path, 'a folder written by aqm-mjx compare')
+    faults = []
+    methods_ = r.get('methods')
+    if not (isinstance(methods_, list) and methods_ and all(isinstance(m, str) for m in methods_)):
+        faults.append(f"'methods' is {methods_!r}, not a list of method names")
+        methods_ = []
+    for key in ('rows', 'configs'):
+        if not isinstance(r.get(key), dict):
+            faults.append(f"{key!r} is {'missing' if key not in r else type(r[key]).__name__}, not an object")
+        else:
+            lost = [m for m in methods_ if m not in r[key]]
+            if lost:
+                faults.append(f"{key!r} lacks method(s) {lost}")
+    if not isinstance(r.get('overrides', []), list):
+        faults.append(f"'overrides' is {type(r['overrides']).__name__}, not a list")
+    if faults:
+        raise files.BadFileError(f'{path} is not a finished comparison: ' + '; '.join(faults))
+    return r
+
+
 def merge(folders: Sequence[str], out: str, log=print) -> dict:
     """One table from several finished ``aqm-mjx compare`` folders: their methods' rows side by side.
 
@@ -225,8 +249,9 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     (``eval_seed``), layout, tasks and episodes, and on the overrides given to every method (a
     ``METHOD:`` override travels with its method); a method may appear in one folder only. Writes
     ``OUT/results.json`` (with ``merged_from``), ``OUT/table.md`` and ``OUT/success.png`` holding
-    ``OUT``'s lock (:func:`aqm_mjx.files.run_lock`); the inputs are only read. Returns the merged
-    comparison.
+    ``OUT``'s lock (:func:`aqm_mjx.files.run_lock`); the inputs are only read: an ``OUT`` that is,
+    lies inside or links into an input (or holds one) is refused before anything is written. Returns
+    the merged comparison.
     """
     folders = [os.path.normpath(f) for f in folders]
     if len(folders) < 2:
@@ -234,11 +259,15 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     real = [os.path.realpath(f) for f in folders]  # one folder however it is spelled
     if len(set(real)) != len(real):
         raise ValueError(f'folders repeat: {folders}')
-    if os.path.realpath(out) in real or os.path.exists(os.path.join(out, 'compare.json')):
+    for f in folders:  # the inputs are only read: no output in, at or linked into one, and no input in the output
+        if files.inside(out, f) or files.inside(f, out):
+            raise ValueError(f'--out {out} ' + ('is or lies inside' if files.inside(out, f) else 'holds')
+                             + f' the input {f} (resolved: {os.path.realpath(out)} and {os.path.realpath(f)}); '
+                             'merge only reads its inputs: write the merged table to a folder outside every input')
+    if os.path.exists(os.path.join(out, 'compare.json')):
         raise ValueError(f'{out} is a comparison folder; write the merged table to another --out (its own '
                          'files would be replaced)')
-    parts = [files.read_json(os.path.join(f, 'results.json'), 'a folder written by aqm-mjx compare')
-             for f in folders]
+    parts = [_read_comparison(f) for f in folders]
     first = parts[0]
     shared = [o for o in first.get('overrides', []) if _scope(o) is None]
     for f, r in zip(folders, parts):

@@ -70,11 +70,32 @@ def check_writable(folder: str, need_bytes: int = 0, what: str = 'the output') -
                           f'{free / 2 ** 20:.1f} MiB are free there')
 
 
+class BadFileError(ValueError):
+    """A file the command reads is damaged or is not what it should be; the message names it."""
+
+
 def read_json(path: str, what: str = 'a run folder written by aqm-mjx train') -> dict:
+    """The JSON object in ``path``, opened read-only.
+
+    Raises :class:`MissingFileError` when it is absent, :class:`BadFileError` naming the file when
+    it is not valid JSON (truncated, edited by hand) or not a JSON object."""
     if not os.path.exists(path):
         raise MissingFileError(f'{path}: no such file (is this {what}?)')
-    with open(path) as f:
-        return json.load(f)
+    try:
+        with open(path, 'rb') as f:
+            obj = json.loads(f.read().decode('utf-8'))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise BadFileError(f'{path} is not valid JSON ({e}); it is damaged or truncated (is this {what}?)') from None
+    if not isinstance(obj, dict):
+        raise BadFileError(f'{path} holds a JSON {type(obj).__name__}, not the object {what} writes')
+    return obj
+
+
+def inside(path: str, folder: str) -> bool:
+    """Whether ``path`` is ``folder`` or lies under it, once both are resolved (symbolic links
+    followed, however the paths are spelled)."""
+    p, f = os.path.realpath(path), os.path.realpath(folder)
+    return p == f or os.path.commonpath([p, f]) == f
 
 
 LOCK_NAME = '.aqm-mjx.lock'

@@ -293,6 +293,8 @@ def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
     _finished(other, {'saw': [(0.5, 0.5), (0.5, 0.5)]}, sha='cd' * 32)
     with pytest.raises(ValueError, match='differ in data_sha256'):
         compare.merge([a, other], str(tmp_path / 'x'), **QUIET)
+    with open(os.path.join(other, 'compare.json'), 'w') as f:  # as a compare folder has one
+        f.write('{}')
     fewer = str(tmp_path / 'fewer')
     _finished(fewer, {'saw': [(0.5, 0.5), (0.5, 0.5)]}, overrides=('protocol.episodes=5',), episodes=5)
     with pytest.raises(ValueError, match='differ in episodes.*overrides'):
@@ -301,10 +303,12 @@ def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
     _finished(again, {'qrl': [(0.5, 0.5), (0.5, 0.5)]})
     with pytest.raises(ValueError, match="method 'qrl' is in both"):
         compare.merge([a, again], str(tmp_path / 'x'), **QUIET)
-    with pytest.raises(ValueError, match='is a comparison folder'):
+    with pytest.raises(ValueError, match='is or lies inside the input'):
         compare.merge([a, b], a, **QUIET)
-    with pytest.raises(ValueError, match='is a comparison folder'):  # the same folder spelled another way
+    with pytest.raises(ValueError, match='is or lies inside the input'):  # the same folder spelled another way
         compare.merge([a, b], os.path.relpath(b) + os.sep, **QUIET)
+    with pytest.raises(ValueError, match='is a comparison folder'):  # another comparison's folder
+        compare.merge([a, b], other, **QUIET)
     with pytest.raises(ValueError, match='folders repeat'):
         compare.merge([a, os.path.relpath(a)], str(tmp_path / 'x'), **QUIET)
     with pytest.raises(ValueError, match='at least two'):
@@ -325,3 +329,57 @@ def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
     finally:
         holder.kill()
         holder.wait()
+
+
+def _tree(folder) -> dict:
+    """{relative path: bytes} of every file under ``folder`` (symbolic links as their targets' names)."""
+    out = {}
+    for root, dirs, names in os.walk(folder):
+        for n in names + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
+            p = os.path.join(root, n)
+            out[os.path.relpath(p, folder)] = os.readlink(p) if os.path.islink(p) else open(p, 'rb').read()
+    return out
+
+
+def test_merge_never_writes_into_an_input(tmp_path, capsys):
+    """An --out inside an input, equal to one however spelled, a symbolic link into one, or holding
+    one is refused with exit 2 and one line before anything is written; damaged inputs (no rows or
+    configs, a list, methods as a string, truncated JSON) are named, not tracebacks; every input's
+    bytes are unchanged and no output folder is left."""
+    a, b = str(tmp_path / 'r' / 'cmp'), str(tmp_path / 'r' / 'cmpB')
+    _finished(a, {'aqm': [(0.9, 0.7), (1.0, 0.8)], 'gcbc': [(0.2, 0.0), (0.1, 0.1)]})
+    _finished(b, {'hiql': [(0.3, 0.1), (0.0, 0.2)]})
+    os.makedirs(os.path.join(a, 'eval', 'gcbc'))
+    with open(os.path.join(a, 'eval', 'gcbc', 'results.json'), 'w') as f:
+        f.write('{"gcbc": "its own evaluation"}')
+    os.symlink(os.path.join(a, 'eval'), str(tmp_path / 'link'))
+    before = {f: _tree(f) for f in (a, b)}
+    cases = [(os.path.join(a, 'eval', 'gcbc'), 'is or lies inside the input'),  # the issue's case
+             (os.path.join(a, 'new'), 'is or lies inside the input'),          # not there yet, still inside
+             (str(tmp_path / 'link' / 'gcbc'), 'is or lies inside the input'),  # a link into an input
+             (str(tmp_path / 'link'), 'is or lies inside the input'),
+             (str(tmp_path / 'r'), 'holds the input')]                          # an input inside the output
+    for out, msg in cases:
+        capsys.readouterr()
+        assert cli.main(['merge', a, b, '--out', out]) == 2, out
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and msg in err[0] and 'Traceback' not in err[0], err
+    assert {f: _tree(f) for f in (a, b)} == before
+    assert not os.path.exists(os.path.join(a, 'new'))
+    # damaged inputs: the file and the fault named
+    good = json.load(open(os.path.join(b, 'results.json')))
+    bad = str(tmp_path / 'bad')
+    os.makedirs(bad)
+    for text, msg in ((json.dumps({k: v for k, v in good.items() if k != 'configs'}), "'configs' is missing"),
+                      (json.dumps({k: v for k, v in good.items() if k != 'rows'}), "'rows' is missing"),
+                      (json.dumps(dict(good, methods='hiql')), "'methods' is 'hiql'"),
+                      (json.dumps(dict(good, rows={})), "'rows' lacks method(s) ['hiql']"),
+                      (json.dumps([good]), 'holds a JSON list'),
+                      (json.dumps(good)[:200], 'is not valid JSON')):
+        with open(os.path.join(bad, 'results.json'), 'w') as f:
+            f.write(text)
+        capsys.readouterr()
+        assert cli.main(['merge', a, bad, '--out', str(tmp_path / 'x')]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and os.path.join(bad, 'results.json') in err[0] and msg in err[0], (msg, err)
+    assert not os.path.exists(tmp_path / 'x') and {f: _tree(f) for f in (a, b)} == before
