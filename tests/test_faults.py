@@ -88,7 +88,7 @@ def test_divergence_stops_with_one_line_and_strict_metrics(tmp_path, grid_file, 
 def test_divergence_keeps_the_last_finite_checkpoint(tmp_path, grid_data):
     cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', checkpoint_every=50, keep=5)
     out = str(tmp_path / 'run')
-    with pytest.raises(fit.DivergedError, match=r'in updates 151-200: non-finite .*state.*newest checkpoint, step 150'):
+    with pytest.raises(fit.DivergedError, match=r'in updates 151-200 \(this run started from the beginning\): non-finite .*state.*newest checkpoint, step 150'):
         fit.train(_nan_after(160), cfg, grid_data, out, progress=False, log=lambda *_: None)
     assert fit.checkpoint_steps(out) == [50, 100, 150]
     t = fit.load(out, log=lambda *_: None)  # the newest is finite and loads
@@ -118,10 +118,73 @@ def test_evaluation_refuses_non_finite_parameters(tmp_path, grid_data):
     bad = jax.tree.map(lambda x: x * jnp.nan if jnp.issubdtype(x.dtype, jnp.floating) else x, t.state)
     saver.save(200, bad, t.meta)  # as an older version could have written it
     saver.close()
-    with pytest.raises(fit.DivergedError, match='checkpoint 200 holds non-finite parameters'):
-        fit.load(out, log=lambda *_: None)
-    assert fit.load(out, step=100, log=lambda *_: None).step == 100
+    logs = []
+    assert fit.load(out, log=logs.append).step == 100  # the newest fails its check: the previous, with one line
+    assert len(logs) == 1 and 'checkpoint 200' in logs[0] and 'non-finite values in' in logs[0]
+    with pytest.raises(ckpt.CheckpointError, match='checkpoint 200 .* non-finite values'):
+        fit.load(out, step=200, log=lambda *_: None)
+    assert fit.checkpoint_steps(out) == [100, 200]  # a reader moves nothing
     assert not math.isnan(float(jax.tree.leaves(t.params)[0].ravel()[0]))
+
+
+def _flip_bytes(out: str, step: int, n: int = 32) -> None:
+    """Flip ``n`` bytes in the middle of the largest data file of checkpoint ``step``'s state (still
+    decodable: the arrays come back with other values)."""
+    root = os.path.join(out, 'checkpoints', str(step), 'state')
+    data = [os.path.join(d, f) for d, _, names in os.walk(root) for f in names if os.path.basename(d) == 'd']
+    path = max(data, key=os.path.getsize)
+    b = bytearray(open(path, 'rb').read())
+    for i in range(n):
+        b[len(b) // 2 + i] ^= 0x5A
+    with open(path, 'wb') as f:
+        f.write(bytes(b))
+
+
+@pytest.mark.parametrize('fault', ['nan', 'flipped'])
+def test_resume_checks_what_it_restores(tmp_path, grid_file, grid_data, capfd, fault):
+    """A newest checkpoint that reads but is unsound (a NaN state saved as newest; 32 flipped bytes in
+    a data file) is moved aside with one line naming the fault, and the run resumes from the previous
+    step and ends bit-identical to one never interrupted; a divergence message names the step the
+    run resumed from."""
+    ref, out = str(tmp_path / 'ref'), str(tmp_path / 'run')
+    base = ['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci']
+    assert cli.main(base + ['--out', ref, '--steps', '300']) == 0
+    assert cli.main(base + ['--out', out]) == 0  # ci: 200 updates, checkpoints 100 and 200
+    if fault == 'nan':
+        t = fit.load(out, log=lambda *_: None)
+        saver = ckpt.Checkpointer(out, keep=None)
+        saver.save(300, jax.tree.map(lambda x: x * jnp.nan if jnp.issubdtype(x.dtype, jnp.floating) else x, t.state),
+                   t.meta)
+        saver.close()
+        newest, why = 300, 'non-finite values in'
+    else:
+        _flip_bytes(out, 200)
+        newest, why = 200, 'do not match the digest saved with them'
+    damaged = {os.path.relpath(os.path.join(d, n), out): open(os.path.join(d, n), 'rb').read()
+               for d, _, names in os.walk(os.path.join(out, 'checkpoints', str(newest))) for n in names}
+    capfd.readouterr()
+    assert cli.main(['train', '--dataset', grid_file, '--resume', '--steps', '300', '--out', out]) == 0
+    o, e = capfd.readouterr()
+    warnings = [ln for ln in o.splitlines() if ln.startswith('warning:')]
+    assert len(warnings) == 1 and f'checkpoint {newest}' in warnings[0] and why in warnings[0], warnings
+    assert 'checkpoints_unreadable' in warnings[0] and 'Traceback' not in e
+    start = 200 if fault == 'nan' else 100
+    assert f'at step {start}' in o
+    aside = os.path.join(out, 'checkpoints_unreadable', str(newest))
+    kept = {os.path.relpath(os.path.join(d, n), aside): open(os.path.join(d, n), 'rb').read()
+            for d, _, names in os.walk(aside) for n in names}
+    assert kept == {os.path.relpath(k, os.path.join('checkpoints', str(newest))): v for k, v in damaged.items()}
+    assert fit.checkpoint_steps(out)[-1] == 300 and _leaves(out) == _leaves(ref)
+
+def test_divergence_after_a_resume_names_the_step_it_resumed_from(tmp_path, grid_data, monkeypatch):
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', checkpoint_every=50, keep=5)
+    out = str(tmp_path / 'run')
+    fit.train('gcbc', cfg, grid_data, out, progress=False, log=lambda *_: None)  # 200 updates
+    poisoned = _nan_after(260)
+    monkeypatch.setattr(methods, 'get', lambda name: poisoned)  # the saved run's method, now diverging
+    with pytest.raises(fit.DivergedError, match=r'in updates 251-300 \(this run resumed from checkpoint 200\): '
+                                                r'non-finite .*newest checkpoint, step 250'):
+        fit.train('gcbc', None, grid_data, out, resume=True, steps=400, progress=False, log=lambda *_: None)
 
 
 # -------------------------------------------------------------------------------- torn checkpoints

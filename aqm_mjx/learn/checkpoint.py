@@ -6,9 +6,12 @@ Layout of a run folder::
     DIR/metrics.jsonl          one JSON object per logged step
     DIR/checkpoints/<step>/    Orbax: ``state`` (every array needed to continue) and ``config``
 
-A checkpoint Orbax did not finish is never listed (it writes to a temporary name first). One that
-is listed but cannot be read is skipped for the previous one with one warning line; a resuming run
-also moves it aside to ``DIR/checkpoints_unreadable/<step>`` (kept, not deleted) so that training
+A checkpoint Orbax did not finish is never listed (it writes to a temporary name first). Every save
+records a digest of the state's bytes (CRC-32 per array) beside its config; a restore checks that
+every floating array is finite and that the bytes read give the digest saved (damaged bytes that
+still decode, e.g. flipped bits in a data file, fail it). One that is listed but cannot be read or
+fails that check is skipped for the previous one with one warning line; a resuming run also moves it
+aside to ``DIR/checkpoints_unreadable/<step>`` (kept, not deleted) so that training
 can write that step again. Orbax's own log lines and background-thread output during a restore are
 kept from the terminal: its errors reach the user as one line each.
 """
@@ -25,7 +28,42 @@ import threading
 import warnings
 from typing import Any, Optional
 
+import zlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
+
+DIGEST_KEY = 'state_digest'  # the saved config's field holding the state's digest
+
+
+def state_digest(state: Any) -> str:
+    """CRC-32 of every array of ``state`` in tree order (``'crc32:HEX'``): what a restore compares."""
+    crc = 0
+    for x in jax.tree.leaves(state):
+        if jnp.issubdtype(jnp.result_type(x), jax.dtypes.prng_key):
+            x = jax.random.key_data(x)
+        a = np.ascontiguousarray(np.asarray(x))
+        crc = zlib.crc32(a.dtype.str.encode() + str(a.shape).encode(), crc)
+        crc = zlib.crc32(a.tobytes(), crc)
+    return f'crc32:{crc:08x}'
+
+
+def state_faults(state: Any, config: dict) -> list[str]:
+    """What is wrong with a restored ``state`` against the ``config`` saved with it: floating arrays
+    with non-finite values (by path), and a digest that differs from the one saved (checkpoints
+    written before digests were saved are checked for finiteness alone). Empty when it is sound."""
+    faults, bad = [], []
+    for path, x in jax.tree_util.tree_flatten_with_path(state)[0]:
+        if jnp.issubdtype(jnp.result_type(x), jnp.inexact) and not bool(jnp.isfinite(x).all()):
+            bad.append(jax.tree_util.keystr(path))
+    if bad:
+        faults.append(f'non-finite values in {", ".join(bad[:3])}{" and more" if len(bad) > 3 else ""}')
+    saved = config.get(DIGEST_KEY)
+    if saved is not None and saved != state_digest(state):
+        faults.append(f'its arrays do not match the digest saved with them ({saved}): damaged bytes')
+    return faults
 
 
 class CheckpointError(RuntimeError):
@@ -56,6 +94,7 @@ class Checkpointer:
         """Write checkpoint ``step`` and wait until it is complete on disk. A failed write (disk
         full, read-only) leaves no temporary folder behind and raises :class:`CheckpointError`
         with one line saying why; the checkpoints already there are untouched."""
+        config = dict(config, **{DIGEST_KEY: state_digest(state)})
         try:
             with quiet():
                 self._mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),
@@ -90,6 +129,9 @@ class Checkpointer:
                 set_aside: bool = False) -> tuple[int, Any, dict]:
         """Restore ``step`` (default: the newest readable one) into the structure of ``template``.
 
+        A checkpoint that reads but fails :func:`state_faults` (non-finite values, bytes that do not
+        give the digest saved) counts as unreadable.
+
         Args:
             set_aside: move each unreadable checkpoint newer than the one restored to
                 ``DIR/checkpoints_unreadable/`` (a resuming writer; readers leave the folder alone).
@@ -105,8 +147,12 @@ class Checkpointer:
                 with quiet():
                     out = self._mngr.restore(s, args=ocp.args.Composite(state=ocp.args.StandardRestore(template),
                                                                         config=ocp.args.JsonRestore()))
+                faults = state_faults(out['state'], dict(out['config']))
+                if faults:
+                    raise CheckpointError(f'it fails its check: {"; ".join(faults)}')
             except Exception as e:  # pylint: disable=broad-except  (any unreadable checkpoint: try the previous)
-                msg = f'checkpoint {s} in {self.directory} is unreadable ({one_line(e)})'
+                why = str(e) if isinstance(e, CheckpointError) else one_line(e)
+                msg = f'checkpoint {s} in {self.directory} is unreadable ({why})'
                 errors.append(msg)
                 if step is None:
                     if set_aside:

@@ -291,14 +291,15 @@ def _nonfinite_leaves(state, seeds: Optional[int]) -> dict:
     return out
 
 
-def _diverged(cfg, step: int, what: list[str], who: str, saved: list[int]) -> DivergedError:
+def _diverged(cfg, step: int, what: list[str], who: str, saved: list[int], start: int = 0) -> DivergedError:
     shown = ', '.join(what[:3]) + (f' and {len(what) - 3} more' if len(what) > 3 else '')
     lrs = [(f.name, getattr(cfg, f.name)) for f in dataclasses.fields(cfg) if f.name.startswith('lr')]
     hint = ', '.join(f'{n}={v:g}' for n, v in lrs)
     kept = (f'the newest checkpoint, step {max(saved)}, holds finite values (only finite states are saved)'
             if saved else 'no checkpoint was written')
-    return DivergedError(f'training diverged{who} in updates {step - cfg.updates_per_call + 1}-{step}: non-finite '
-                         f'{shown}; stopped, {kept}. Try lower learning rates (now {hint}; --set NAME=VALUE) or '
+    began = f'this run resumed from checkpoint {start}' if start else 'this run started from the beginning'
+    return DivergedError(f'training diverged{who} in updates {step - cfg.updates_per_call + 1}-{step} ({began}): '
+                         f'non-finite {shown}; stopped, {kept}. Try lower learning rates (now {hint}; --set NAME=VALUE) or '
                          f'look for extreme values in the dataset')
 
 
@@ -365,7 +366,7 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
             if any(bad):
                 i = next(i for i, b in enumerate(bad) if b)
                 raise _diverged(cfg, step, bad[i], '' if seeds is None else f' (seed folder {outs[i]})',
-                                savers[i].steps())
+                                savers[i].steps(), start)
             if bar is not None:
                 # postfix first without a redraw: update() draws once (a refresh here wrote every line twice in logs)
                 bar.set_postfix({PROGRESS_KEYS[k]: f'{v:.3g}' for k, v in lines[0].items() if k in PROGRESS_KEYS},
@@ -486,18 +487,16 @@ def _restore_common(savers: list, templates: list, done: list[list[int]], log) -
 
 
 def load(out: str, step: Optional[int] = None, log=print) -> Trained:
-    """A run folder for evaluation: its ``config.json`` and the newest readable checkpoint."""
+    """A run folder for evaluation: its ``config.json`` and the newest readable checkpoint (one whose
+    arrays are finite and match the digest saved with them; a newer one that is not is named in a
+    warning line). Raises :class:`~aqm_mjx.learn.checkpoint.CheckpointError` when none is."""
     method, cfg, meta = read_meta(out)
     saver = ckpt.Checkpointer(out, keep=None, create=False)
     try:
         check_against_checkpoint(out, meta, saver, step)
         learner = method.make(cfg, meta['obs_size'], meta['action_size'])
         template = learner.init(jax.random.PRNGKey(0))
-        s, state, _ = saver.restore(template, step=step, log=log)
+        s, state, _ = saver.restore(template, step=step, log=log)  # non-finite or damaged: the previous one
     finally:
         saver.close()
-    bad = [p for p, ok in jax.device_get(_nonfinite_leaves(learner.params(state), None)).items() if not ok]
-    if bad:
-        raise DivergedError(f'{out}: checkpoint {s} holds non-finite parameters ({", ".join(bad[:3])}'
-                            f'{" and more" if len(bad) > 3 else ""}); a diverged model cannot be evaluated')
     return Trained(method.name, cfg, learner, state, s, meta)
