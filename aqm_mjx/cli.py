@@ -349,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="navigate episodes to collect (1001 states each; default: the preset's, 100 or 400 for cpu-long)")
     r.add_argument('--collect-batch', type=int, default=55,
                    help='episodes collected side by side (default: the 100 + 10 of the default run in 2 calls)')
-    r.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
+    r.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")
     r.add_argument('--seed', type=int, default=0, help='run seed: PRNGKey(seed) is split into train, map, evaluation')
     r.add_argument('--one-program', action='store_true',
                    help='train, select keypoints and evaluate as one jitted program (no checkpoints)')
@@ -431,7 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
                         '(any methods, one environment) on the same episodes')
     v.add_argument('--dataset', default=None, help='states to select keypoints from (default: the training dataset)')
     v.add_argument('--shift', default='base',
-                   help="layout: 'base', 'all' (the maze's shift suite), or one variant such as close-3-3")
+                   help="layout: 'base', 'all' (the maze's shift suite), 'closures' (base and the suite's closed "
+                        "corridors), one variant such as close-3-3, or several joined by commas")
     v.add_argument('--preset', default=None, choices=presets,
                    help="map, agent and protocol defaults (default: the checkpoint's training preset)")
     v.add_argument('--set', action='append', metavar='SECTION.FIELD=VALUE',
@@ -469,7 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument('--collect-episodes', type=int, default=None,
                    help="episodes to collect (default: the preset's, 100 or 400 for cpu-long)")
     k.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
-    k.add_argument('--shift', default='base', help="evaluation layout: base, all, or a variant (close-I-J)")
+    k.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")
     k.add_argument('--backend', default=None, choices=['mjx', 'ogbench'],
                    help="physics of the evaluation: 'mjx' (default) or 'ogbench' (OGBench's own environments on "
                         'the host; same as --set protocol.backend=ogbench)')

@@ -174,7 +174,8 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
             inputs = proto.table_inputs(episodes, k_eval)
         else:  # CALIBRATE: the budgets from the legs of a no-pruning pass
             c = calibration.calibrate(rollout(params, graph, proto.table_inputs(
-                cal_episodes, jax.random.fold_in(k_eval, proto.CALIBRATION_FOLD)))['legs'], cfg.protocol.false_alarm)
+                cal_episodes, jax.random.fold_in(k_eval, proto.CALIBRATION_FOLD)))['legs'], cfg.protocol.false_alarm,
+                stall_scale=cfg.protocol.stall_scale)
             kappa, patience = calibration.budget(c, rule, cfg.agent.kappa, cfg.agent.patience)
             budgets = calibration.row_budgets(c, cfg.agent.kappa, cfg.agent.patience)
             inputs = proto.table_inputs(episodes, k_eval, budgets=budgets)

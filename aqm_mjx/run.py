@@ -63,8 +63,18 @@ def read_data(path: str, env) -> dict:
 
 
 def variants_for(maze: str, shift: str) -> dict:
-    """``{name: grid}`` of ``--shift``: 'base', 'all' (the maze's suite) or one variant."""
-    return shifts.suite(maze) if shift == 'all' else {shift: shifts.variant(maze, shift)}
+    """``{name: grid}`` of ``--shift``: 'base', 'all' (the maze's suite), 'closures' (the training layout
+    and the suite's closed corridors), one variant, or several joined by commas ('base,close-3-3')."""
+    if shift == 'all':
+        return shifts.suite(maze)
+    if shift == 'closures':
+        return {k: g for k, g in shifts.suite(maze).items() if k == 'base' or k.startswith('close')}
+    names = [n.strip() for n in shift.split(',')]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if '' in names or repeated:
+        raise ValueError(f'--shift {shift!r}: ' + (f'layout(s) {repeated} named twice' if repeated else 'an empty name')
+                         + "; give layout names joined by commas, e.g. 'base,close-3-3'")
+    return {n: shifts.variant(maze, n) for n in names}
 
 
 def preset_for_name(train_preset: str) -> str:
@@ -159,7 +169,9 @@ def calibration_line(cal: dict, agent_cfg) -> str:
     q = f'{cal["false_alarm"]:.1%} false alarms'
     paper = f'; the paper\'s rule on keypoint edges: kappa {cal["kappa_edges"]:g}'
     if cal['rule'] == 'stall':
-        return f'{where}: AQM row on the stall rule, patience {cal["patience"]:g} steps ({q}){paper}'
+        how = (f'{cal["stall_scale"]:g} x the 90th percentile of the longest stall, {cal["stall_q"][1]:g} steps'
+               if cal.get('stall_scale', 0) > 0 else q)
+        return f'{where}: AQM row on the stall rule, patience {cal["patience"]:g} steps ({how}){paper}'
     if cal['rule'] == 'fixed':
         return f'{where}: AQM row on the fixed rule, kappa {cal["kappa"]:g} ({q}){paper}'
     return f'{where} ({q}){paper}'

@@ -61,6 +61,22 @@ def test_medium_shift_by_hand():
         shifts.suite('teleport')
 
 
+def test_shift_names_pick_layouts():
+    """--shift: 'closures' is the training layout and the suite's closed corridors; a comma list
+    picks layouts in its order; repeats, empty and unknown names are refused by name."""
+    from aqm_mjx import run
+    assert list(run.variants_for('medium', 'closures')) == ['base', 'close-3-3', 'close-5-4', 'close-6-2']
+    v = run.variants_for('medium', 'close-6-2, base')
+    assert list(v) == ['close-6-2', 'base'] and v['close-6-2'][6, 2] == 1 and v['base'][6, 2] == 0
+    assert list(run.variants_for('medium', 'all')) == list(shifts.suite('medium'))
+    with pytest.raises(ValueError, match=r"\['base'\] named twice"):
+        run.variants_for('medium', 'base,base')
+    with pytest.raises(ValueError, match='an empty name'):
+        run.variants_for('medium', 'base,')
+    with pytest.raises(ValueError, match="unknown shift 'close-1-1'"):
+        run.variants_for('medium', 'base,close-1-1')
+
+
 # ------------------------------------------------------------------------------------ the table
 def test_config_and_episode_table():
     specs = protocol.agent_specs(0.5, ('no-pruning', 'flat', 'kappa=1'))
@@ -203,6 +219,30 @@ def test_calibration_by_hand():
     for empty in (np.zeros((0, 3), np.float32), np.full((4, 3), -1.0, np.float32)):
         e = calibration.calibrate(empty, 0.02)
         assert int(e['legs']) == 0 and np.isnan(float(e['kappa'])) and np.isnan(float(e['patience']))
+
+
+def test_stall_scale_sets_patience_to_a_multiple_of_the_90th_percentile():
+    """With a stall scale C the stall rule's patience is C x the 90th percentile of the longest
+    stall (by hand on a recomputable log), the kappas still read the false-alarm quantile, the same
+    under jit, through budget() rounded to a step, and bad scales are refused by name."""
+    stall = np.arange(1, 101, dtype=np.float32)  # longest stalls 1..100: q90 = 90.1 (linear interpolation)
+    legs = np.stack([np.full(100, 10.0, np.float32), np.linspace(10, 40, 100, dtype=np.float32), stall], -1)
+    assert np.quantile(stall, 0.9) == pytest.approx(90.1)
+    c = calibration.calibrate(legs, 0.05, stall_scale=2.5)
+    assert float(c['patience']) == pytest.approx(2.5 * 90.1, rel=1e-5)
+    assert float(c['kappa']) == pytest.approx(np.quantile(legs[:, 1] / 10.0, 0.95) - 1, rel=1e-5)
+    assert float(calibration.calibrate(legs, 0.05)['patience']) == pytest.approx(np.quantile(stall, 0.95), rel=1e-5)
+    cj = jax.jit(lambda x: calibration.calibrate(x, 0.05, stall_scale=2.5))(legs)
+    assert float(cj['patience']) == pytest.approx(225.25, rel=1e-5)
+    kappa, patience = calibration.budget(c, 'stall', 1.0, 0.0)
+    assert (float(kappa), float(patience)) == (1.0, 225.0)
+    # a tiny stall scale still gives a patience of at least one step
+    assert float(calibration.calibrate(legs, 0.05, stall_scale=1e-3)['patience']) == 1.0
+    for bad in (-1.0, float('nan'), float('inf')):
+        with pytest.raises(ValueError, match='stall_scale'):
+            calibration.calibrate(legs, 0.05, stall_scale=bad)
+        with pytest.raises(ValueError, match='stall_scale'):
+            protocol.ProtocolConfig(stall_scale=bad)
 
 
 def test_calibration_never_draws_an_evaluation_task_or_key(monkeypatch):

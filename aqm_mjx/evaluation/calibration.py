@@ -11,9 +11,14 @@ rate ``q``:
 
 - the fixed budget ``(1 + kappa) d`` on every leg: ``kappa = quantile_{1-q}(steps / d) - 1``;
 - the paper's rule, the same on keypoint edges alone: ``kappa_edges``, that quantile over them;
-- the stall rule: ``patience = quantile_{1-q}(longest stall)``.
+- the stall rule: ``patience = quantile_{1-q}(longest stall)``, or, with a stall scale ``C > 0``,
+  ``patience = C quantile_0.9(longest stall)``: a multiple of how long the controller typically
+  stalls, the way the paper's budget is a multiple of d. The tail quantile moves by about 100%
+  across calibration keys (long stalls come in bunches from a few episodes); the 90th percentile
+  by about 20% (RESULTS.md, the calibration's spread).
 
-so that a fraction ``q`` of the traversable legs seen would have been cut. Legs the agent never
+so that a fraction ``q`` of the traversable legs seen would have been cut (with a stall scale, the
+rate follows from ``C`` instead). Legs the agent never
 finishes (it got stuck, or the episode ended) are not in the log, so the rate is a lower bound.
 
     legs = calibration.legs_of(results, agent='no-pruning', layout='base')
@@ -27,6 +32,8 @@ this before it evaluates (:func:`aqm_mjx.evaluation.evaluate.calibration_pass` o
 """
 
 from __future__ import annotations
+
+import math
 
 import jax
 import jax.numpy as jnp
@@ -46,7 +53,7 @@ def valid(legs) -> jnp.ndarray:
     return (legs[..., 1] >= 0) & (legs[..., 0] > 0) & jnp.isfinite(legs[..., 0])
 
 
-def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
+def calibrate(legs, false_alarm: float = 0.02, rows=None, stall_scale: float = 0.0) -> dict:
     """The budget settings that cut a fraction ``false_alarm`` of the legs in ``legs [..., 4]``.
 
     Args:
@@ -55,6 +62,9 @@ def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
         false_alarm: the fraction of (traversable) legs that the settings would cut, in (0, 1).
         rows: optional ``bool`` mask over the leading axes: which legs to use (e.g. the no-pruning
             rows of an episode table).
+        stall_scale: > 0: the stall rule's patience is this multiple of the 90th percentile of the
+            longest stall (``false_alarm`` then sets the kappas alone); 0: its ``1 - false_alarm``
+            quantile.
     Returns:
         ``{'kappa', 'kappa_edges', 'patience', 'legs', 'edges', 'ratio_q', 'stall_q'}``: the fixed
         rule's slack over every leg and over keypoint edges alone (the paper's rule), the stall
@@ -63,6 +73,8 @@ def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
     """
     if not 0.0 < false_alarm < 1.0:
         raise ValueError(f'false_alarm must be in (0, 1); got {false_alarm}')
+    if not (isinstance(stall_scale, (int, float)) and math.isfinite(stall_scale) and stall_scale >= 0):
+        raise ValueError(f'stall_scale must be a finite number >= 0 (0: the false-alarm quantile); got {stall_scale!r}')
     legs = jnp.asarray(legs, jnp.float32)
     if legs.size == 0:  # no leg at all (shapes are static, so this is a trace-time check): NaN, as for no valid one
         legs, rows = jnp.full((1, 3), -1.0), None
@@ -78,8 +90,9 @@ def calibrate(legs, false_alarm: float = 0.02, rows=None) -> dict:
     r_q, s_q = jnp.nanquantile(ratio, qs), jnp.nanquantile(stall, qs)
     edge = ok & (legs[..., 3] == LEG_EDGE)
     e_q = jnp.nanquantile(jnp.where(edge.reshape(-1), ratio, jnp.nan), 1.0 - false_alarm)
+    patience = stall_scale * s_q[QUANTILES.index(0.9)] if stall_scale > 0 else s_q[-1]
     return dict(kappa=jnp.maximum(r_q[-1] - 1.0, 0.0), kappa_edges=jnp.maximum(e_q - 1.0, 0.0),
-                patience=jnp.maximum(s_q[-1], 1.0), legs=jnp.sum(ok).astype(jnp.int32),
+                patience=jnp.maximum(patience, 1.0), legs=jnp.sum(ok).astype(jnp.int32),
                 edges=jnp.sum(edge).astype(jnp.int32), ratio_q=r_q[:-1], stall_q=s_q[:-1])
 
 

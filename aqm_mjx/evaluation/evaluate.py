@@ -226,7 +226,7 @@ def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol
     :func:`~aqm_mjx.evaluation.calibration.budget` and :func:`~aqm_mjx.evaluation.calibration.row_budgets`).
 
     Returns:
-        ``{'rule', 'false_alarm', 'episodes', 'legs', 'edges', 'calibrated', 'kappa', 'patience',
+        ``{'rule', 'false_alarm', 'stall_scale', 'episodes', 'legs', 'edges', 'calibrated', 'kappa', 'patience',
         'kappa_edges', 'budgets', 'ratio_q', 'stall_q'}``: ``kappa`` and ``patience`` are the AQM
         row's under ``protocol.calibrate`` (``cfg``'s when it is 'none' or ``calibrated`` is False: no
         leg was completed); ``kappa_edges`` the paper's rule's; ``budgets`` ``{kind: (kappa,
@@ -245,10 +245,10 @@ def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol
     res = evaluate(env, agent, graph, dataclasses.replace(cfg, kappa=math.inf, patience=0.0),
                    proto.calibration_protocol(protocol), key=jax.random.fold_in(key, proto.CALIBRATION_FOLD),
                    mesh=mesh, progress=progress, program=program, episodes=eps)
-    c = calibration.calibrate(res.legs, protocol.false_alarm)
+    c = calibration.calibrate(res.legs, protocol.false_alarm, stall_scale=protocol.stall_scale)
     kappa, patience = calibration.budget(c, rule, cfg.kappa, cfg.patience)
     budgets = {k: (float(a), float(b)) for k, (a, b) in calibration.row_budgets(c, cfg.kappa, cfg.patience).items()}
-    return dict(rule=rule, false_alarm=protocol.false_alarm, episodes=len(res.table.task), legs=int(c['legs']),
+    return dict(rule=rule, false_alarm=protocol.false_alarm, stall_scale=protocol.stall_scale, episodes=len(res.table.task), legs=int(c['legs']),
                 edges=int(c['edges']), calibrated=bool(int(c['legs']) > 0), kappa=float(kappa), patience=float(patience),
                 kappa_edges=budgets['paper'][0], budgets=budgets,
                 ratio_q=np.asarray(c['ratio_q']).tolist(), stall_q=np.asarray(c['stall_q']).tolist())

@@ -62,6 +62,9 @@ class ProtocolConfig:
                             "the training layout before the evaluation", choices=CALIBRATE)
     false_alarm: float = option(0.005, 'calibrate: the fraction of traversable legs of the calibration pass that '
                                 'the calibrated budget would cut')
+    stall_scale: float = option(0.0, "calibrate='stall': > 0 sets patience to this multiple of the calibration "
+                                "pass's 90th percentile of the longest stall (stable across calibration keys) "
+                                'instead of its false_alarm quantile')
     calibration_episodes: int = option(100, 'calibrate: episodes of the calibration pass, between start and goal '
                                        'cells of the training layout that no evaluation task uses')
     split: str = option('report', "which episodes of the evaluation key: 'report' (no setting was chosen on them; "
@@ -74,6 +77,9 @@ class ProtocolConfig:
         cfg_lib.check_choice(type(self).__name__, 'split', self.split, SPLITS)
         if not 0.0 < self.false_alarm < 1.0:
             raise ValueError(f'ProtocolConfig.false_alarm must be in (0, 1); got {self.false_alarm!r}')
+        if not math.isfinite(self.stall_scale) or self.stall_scale < 0:
+            raise ValueError(f'ProtocolConfig.stall_scale must be a finite number >= 0 (0: the false_alarm '
+                             f'quantile); got {self.stall_scale!r}')
         if self.backend not in BACKENDS:
             raise ValueError(f'unknown ProtocolConfig.backend {self.backend!r}; expected one of {", ".join(BACKENDS)}')
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
