@@ -170,7 +170,7 @@ def cmd_train(a):
     from aqm_mjx.data import dataset  # pylint: disable=import-outside-toplevel
     from aqm_mjx.learn import fit, methods  # pylint: disable=import-outside-toplevel
 
-    method = methods.get(a.method)
+    method = methods.get(a.method or 'aqm')
     try:
         inferred, style = dataset.infer_env(a.dataset)
     except ValueError:
@@ -182,11 +182,25 @@ def cmd_train(a):
         dataset.check_env_name(a.dataset, a.env)
     cfg = None
     obs_size = action_size = None
+    sets = [s[len('train.'):] if s.startswith('train.') else s for s in a.set or []]
     if not a.resume:
         env = envs.make(env_name)
         obs_size, action_size = env.obs_size, env.action_size
-        cfg = method.preset(a.preset, style=style, env=env_name, seed=a.seed).with_overrides([s[len('train.'):] if s.startswith('train.') else s
-                                                               for s in a.set or []])
+        cfg = method.preset(a.preset or 'cpu', style=style, env=env_name, seed=a.seed or 0).with_overrides(sets)
+        if cfg.env != env_name:
+            raise ValueError(f'--set env={cfg.env}: the environment is {env_name} (from --env or the dataset\'s '
+                             'name), which sets the observation size; give --env instead')
+        if a.steps is not None:
+            cfg = dataclasses.replace(cfg, steps=int(a.steps))
+    elif a.method or a.preset or a.seed is not None or sets or a.env:
+        # every option given with --resume is checked against the saved run (the same values pass)
+        if not os.path.exists(os.path.join(a.out, 'config.json')):
+            raise FileNotFoundError(f'{a.out} holds no run to resume (no config.json); start a new run without --resume')
+        saved_method, saved, _ = fit.read_meta(a.out)
+        fit.check_resume_request(a.out, a.method, None)  # another method first: its fields are not comparable
+        base = method.preset(a.preset, style=style, env=saved.env, seed=saved.seed) if a.preset else saved
+        changes = ([f'env={a.env}'] if a.env else []) + ([f'seed={a.seed}'] if a.seed is not None else []) + sets
+        fit.check_resume_request(a.out, None, base.with_overrides(changes))
     data = dataset.read_ogbench(a.dataset, obs_size=obs_size, action_size=action_size, add_info=False)
     print(f'dataset {a.dataset}: {len(data["terminals"])} states, {int(data["terminals"].sum())} trajectories')
     if cfg is not None:
@@ -407,17 +421,20 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument('--dataset', required=True, help='OGBench .npz (e.g. antmaze-large-navigate-v0.npz)')
     t.add_argument('--env', default=None,
                    help='environment; inferred from a file name such as antmaze-large-navigate-v0.npz when omitted')
-    t.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
-    t.add_argument('--preset', default='cpu', choices=presets,
+    t.add_argument('--method', default=None, choices=methods.names(),
+                   help='registered method (aqm-mjx methods; default aqm)')
+    t.add_argument('--preset', default=None, choices=presets,
                    help='cpu: minutes on a 2-core CPU; cpu-long: 50,000 updates; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
-                        'ci: smoke tests')
+                        'ci: smoke tests (default cpu)')
     t.add_argument('--set', action='append', metavar='FIELD=VALUE',
                    help='override a training config field, e.g. --set batch_size=512 --set q_hidden=512,512 (repeatable)')
     t.add_argument('--steps', type=int, default=None, help='total updates (overrides the preset; extends a resumed run)')
-    t.add_argument('--seed', type=int, default=0)
+    t.add_argument('--seed', type=int, default=None, help='initialisation seed (default 0)')
     t.add_argument('--out', required=True, help='run folder')
     t.add_argument('--resume', action='store_true',
-                   help='continue the run in --out from its newest readable checkpoint (its saved config is used)')
+                   help='continue the run in --out from its newest readable checkpoint with its saved config: '
+                        'other options must agree with it (--steps may extend it), and the dataset must be the '
+                        'one it was trained on (by fingerprint)')
     t.set_defaults(fn=cmd_train)
     v = sub.add_parser(
         'evaluate', help='evaluate a trained model: OGBench protocol, ablations and shifts in one batch',

@@ -294,6 +294,51 @@ def test_run_with_other_settings_is_refused_and_more_steps_extend(tmp_path, grid
         fit.train(cfg.method, cfg.train, grid_data, tdir, resume='auto', progress=False, log=quiet)
 
 
+def test_resume_checks_every_option_it_is_given(tmp_path, grid_file, grid_data, capsys):
+    """--resume with options: the saved values pass, a longer --steps extends, anything else (a --set,
+    another method, preset or seed, another dataset) exits 2 with one line naming the fields, and
+    nothing on disk changes; config.json keeps the dataset the run was trained on."""
+    out = str(tmp_path / 'run')
+    base = ['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--method', 'gcbc']
+    assert cli.main(base + ['--out', out]) == 0
+    saved = json.load(open(os.path.join(out, 'config.json')))
+    assert saved['dataset'] == os.path.abspath(grid_file) and len(saved['data_sha256']) == 64
+    before = {n: open(os.path.join(out, n), 'rb').read() for n in ('config.json', 'metrics.jsonl')}
+    steps = fit.checkpoint_steps(out)
+    resume = ['train', '--dataset', grid_file, '--resume', '--out', out]
+    other = str(tmp_path / 'other.npz')  # the same shapes, one action changed
+    changed = dict(grid_data, actions=grid_data['actions'].copy())
+    changed['actions'][0, 0] += 0.5
+    dsm.write_ogbench(other, changed)
+    for extra, fields in ((['--set', 'lr=1e-9', '--set', 'batch_size=7'], ['batch_size: 64 vs 7', 'lr: 0.0003 vs 1e-09']),
+                          (['--method', 'aqm'], ["method: 'gcbc' vs 'aqm'"]),
+                          (['--preset', 'cpu'], ["preset: 'ci' vs 'cpu'"]),
+                          (['--seed', '7'], ['seed: 0 vs 7']),
+                          (['--env', 'antmaze-large'], ["env: 'pointmaze-medium' vs 'antmaze-large'"])):
+        assert cli.main(resume + extra) == 2, extra
+        lines = _error_lines(capsys.readouterr().err)
+        assert len(lines) == 1 and 'differ from them (saved vs given)' in lines[0], lines
+        assert all(f in lines[0] for f in fields), (fields, lines)
+    assert cli.main(['train', '--dataset', other, '--resume', '--out', out]) == 2
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and 'was trained on other data' in lines[0] and other in lines[0], lines
+    assert {n: open(os.path.join(out, n), 'rb').read() for n in before} == before
+    assert fit.checkpoint_steps(out) == steps
+    # the saved values pass; a longer --steps extends; the record of the data stays
+    assert cli.main(resume + ['--preset', 'ci', '--method', 'gcbc', '--seed', '0', '--set', 'batch_size=64',
+                              '--steps', '300']) == 0
+    assert fit.checkpoint_steps(out)[-1] == 300
+    after = json.load(open(os.path.join(out, 'config.json')))
+    assert (after['dataset'], after['data_sha256']) == (saved['dataset'], saved['data_sha256'])
+    # a new run: --steps is what it prints and runs; --set env is refused for --env
+    capsys.readouterr()
+    assert cli.main(base + ['--out', str(tmp_path / 'n'), '--steps', '100']) == 0
+    assert 'preset ci: 100 updates' in capsys.readouterr().out and fit.checkpoint_steps(str(tmp_path / 'n')) == [100]
+    assert cli.main(base + ['--out', str(tmp_path / 'e'), '--set', 'env=antmaze-large']) == 2
+    assert 'give --env instead' in _error_lines(capsys.readouterr().err)[0]
+    assert not os.path.exists(tmp_path / 'e')
+
+
 def test_a_fresh_start_drops_a_killed_runs_metrics(tmp_path, grid_data):
     out = str(tmp_path / 'run')
     os.makedirs(out)

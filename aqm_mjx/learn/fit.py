@@ -84,9 +84,43 @@ class Trained(NamedTuple):
         return self.learner.agent(self.params)
 
 
-def _meta(method: str, cfg, obs_size: int, action_size: int, dataset_path: Optional[str]) -> dict:
+def _meta(method: str, cfg, obs_size: int, action_size: int, dataset_path: Optional[str],
+          data_sha256: Optional[str] = None) -> dict:
     return dict(method=method, config=cfg.to_dict(), obs_size=int(obs_size), action_size=int(action_size),
-                dataset=dataset_path, format=FORMAT)
+                dataset=dataset_path, data_sha256=data_sha256, format=FORMAT)
+
+
+def check_same_data(out: str, saved: dict, data_sha256: str, dataset_path: Optional[str]) -> None:
+    """Refuse to resume the run in ``out`` (its ``config.json`` ``saved``) on other data: the
+    fingerprint (:func:`aqm_mjx.data.dataset.fingerprint`) must match the one recorded; a run recorded
+    before fingerprints must be given the same file."""
+    given = dataset_path or 'the data given'
+    if saved.get('data_sha256'):
+        if saved['data_sha256'] != data_sha256:
+            raise ValueError(f'{out} was trained on other data ({saved.get("dataset")}, sha256 '
+                             f'{saved["data_sha256"][:16]}...) than {given} (sha256 {data_sha256[:16]}...): resume '
+                             'it with its own dataset, or start a new --out')
+    elif saved.get('dataset') and dataset_path and os.path.realpath(saved['dataset']) != os.path.realpath(dataset_path):
+        raise ValueError(f'{out} was trained on {saved["dataset"]} (its config.json records no fingerprint to '
+                         f'compare); resume it with that file, not {dataset_path}')
+
+
+def check_resume_request(out: str, method: Optional[str], cfg) -> None:
+    """Refuse a ``--resume`` whose options (method ``method``, config ``cfg`` built from the options
+    given; None: not given) differ from the saved run's, naming every field; a larger ``steps``
+    extends the run and is not a difference."""
+    saved_method, saved_cfg, meta = read_meta(out)
+    diff = []
+    if method is not None and method != saved_method.name:
+        diff.append(f'method: {saved_method.name!r} vs {method!r}')
+    elif cfg is not None:
+        a, b = saved_cfg.to_dict(), cfg.to_dict()
+        diff += [f'{k}: {a.get(k)!r} vs {b.get(k)!r}' for k in sorted(set(a) | set(b))
+                 if k != 'steps' and a.get(k) != b.get(k)]
+    if diff:
+        raise ValueError(f'--resume continues {out} with its saved settings; these options differ from them '
+                         f'(saved vs given): {"; ".join(diff)}. Drop them to continue (--steps may extend it), '
+                         'or start a new --out')
 
 
 def read_meta(out: str) -> tuple[methods.Method, Any, dict]:
@@ -218,8 +252,10 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
     method = methods.get(method) if isinstance(method, str) else method
     ds = ds_io.to_device(data)  # validates, and refuses a dataset without transitions
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
+    fingerprint = ds_io.fingerprint({k: data[k] for k in ('observations', 'actions', 'terminals') if k in data})
     cfg_path = os.path.join(out, 'config.json')
     metrics_path = os.path.join(out, 'metrics.jsonl')
+    saved_meta = None
     done = checkpoint_steps(out)
     if resume == 'auto':
         resume = bool(done)
@@ -244,6 +280,8 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
         if (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
             raise ValueError(f'{out} was trained on {meta["obs_size"]}-d observations and {meta["action_size"]}-d '
                              f'actions; this dataset has {obs_size} and {action_size}')
+        check_same_data(out, meta, fingerprint, dataset_path)
+        saved_meta = meta
     elif done:
         raise FileExistsError(f'{out} already holds checkpoints; pass --resume to continue it or choose a new --out')
     if cfg is None:
@@ -251,7 +289,9 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
     if steps is not None:
         cfg = dataclasses.replace(cfg, steps=int(steps))
     learner = method.make(cfg, obs_size, action_size)
-    meta = _meta(method.name, cfg, obs_size, action_size, dataset_path)
+    if saved_meta is not None:  # a resumed run keeps the record of the data it was trained on
+        dataset_path, fingerprint = saved_meta.get('dataset') or dataset_path, saved_meta.get('data_sha256') or fingerprint
+    meta = _meta(method.name, cfg, obs_size, action_size, dataset_path, fingerprint)
     state = learner.init(jax.random.PRNGKey(cfg.seed) if key is None else key)
     saver = None
     if resume:
@@ -433,10 +473,12 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) ->
     n, cfg = len(outs), cfgs[0]
     ds = ds_io.to_device(data)
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
+    fingerprint = ds_io.fingerprint({k: data[k] for k in ('observations', 'actions', 'terminals') if k in data})
     done = [checkpoint_steps(o) for o in outs]
     for o, d in zip(outs, done):
         if d:
             _, saved, meta = read_meta(o)
+            check_same_data(o, meta, fingerprint, dataset_path)
             if meta.get('method') != method.name or (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
                 raise ValueError(f'{o} holds a {meta.get("method")} run on {meta["obs_size"]}-d observations; '
                                  f'this is {method.name} on {obs_size}-d: choose another folder')
@@ -453,7 +495,7 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) ->
     start, states = _restore_common(savers, states, done, log)
     if start:
         log(f'{method.name}: resuming {n} seed(s) at step {start}')
-    metas = [_meta(method.name, c, obs_size, action_size, dataset_path) for c in cfgs]
+    metas = [_meta(method.name, c, obs_size, action_size, dataset_path, fingerprint) for c in cfgs]
     for o, m in zip(outs, metas):
         files.write_json(os.path.join(o, 'config.json'), m, makedirs=True)
         _trim_metrics(os.path.join(o, 'metrics.jsonl'), start)
