@@ -146,10 +146,21 @@ def cmd_collect(a):
     physics = {k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations)) if v is not None}
     res = collect.collect(cfg, physics=physics)
     train, val = collect.write(res, a.out, overwrite=a.overwrite)
-    png = a.out[:-4] + '.png'
-    collect.plot(res, png)
+    # the data are complete from here on: a picture or summary the disk has no room for is a warning
+    png, summary = a.out[:-4] + '.png', a.out[:-4] + '.json'
+    try:
+        collect.plot(res, png)
+    except OSError as e:
+        if os.path.exists(png):
+            os.remove(png)
+        print(f'warning: {png} could not be written ({e.strerror or e}); the data in {train} are complete',
+              file=sys.stderr)
+        png = None
     res.stats.update(train=train, val=val if cfg.val_episodes else None, picture=png)
-    files.write_json(a.out[:-4] + '.json', res.stats)
+    try:
+        files.write_json(summary, res.stats)
+    except files.OutputError as e:
+        print(f'warning: {e}; the data in {train} are complete', file=sys.stderr)
     print(json.dumps(res.stats, indent=1))
     return 0
 

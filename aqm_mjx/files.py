@@ -37,9 +37,11 @@ def write_text(path: str, text: str) -> None:
         with open(tmp, 'w') as f:
             f.write(text)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.remove(tmp)
+        if isinstance(e, OSError) and not isinstance(e, OutputError):
+            raise OutputError(f'cannot write {path}: {e.strerror or e}') from None
         raise
 
 
@@ -141,18 +143,43 @@ def run_lock(folder: str):
         raise LockedError(f'{folder} is in use by another aqm-mjx process (pid {who.get("pid", "?")} on '
                           f'{who.get("host", "?")}, `{who.get("command", "?")}` since {who.get("since", "?")}); '
                           f'wait for it to end or stop it, or choose another --out') from None
-    f.seek(0)
-    f.truncate()
-    f.write(json.dumps(dict(pid=os.getpid(), host=socket.gethostname(), command=' '.join(['aqm-mjx'] + sys.argv[1:]),
-                            since=time.strftime('%Y-%m-%d %H:%M:%S'))))
-    f.flush()
+    try:
+        f.seek(0)
+        f.truncate()
+        f.write(json.dumps(dict(pid=os.getpid(), host=socket.gethostname(),
+                                command=' '.join(['aqm-mjx'] + sys.argv[1:]), since=time.strftime('%Y-%m-%d %H:%M:%S'))))
+        f.flush()
+    except OSError as e:  # a full disk: not even the lock's few bytes fit
+        _release(f, folder, path, created)
+        raise OutputError(f'cannot write to {folder}: {e.strerror or e}') from None
     _HELD[key] = [f, 1]
     try:
         yield
     finally:
         del _HELD[key]
-        if created and os.listdir(folder) == [LOCK_NAME]:  # failed before writing anything: leave no folder
-            os.remove(path)
-            os.rmdir(folder)
-        fcntl.flock(f.fileno(), fcntl.LOCK_UN)
-        f.close()
+        _release(f, folder, path, created)
+
+
+def _holds_nothing(folder: str) -> bool:
+    """Whether ``folder`` holds only the lock, empty files and empty folders (a run that wrote nothing)."""
+    for root, _, names in os.walk(folder):
+        for n in names:
+            p = os.path.join(root, n)
+            if not (n == LOCK_NAME and root == folder) and (os.path.islink(p) or os.path.getsize(p) > 0):
+                return False
+    return True
+
+
+def _release(f, folder: str, path: str, created: bool) -> None:
+    """Unlock; a folder this lock created and nothing was written into is removed (no empty run folder)."""
+    try:
+        if created and _holds_nothing(folder):
+            shutil.rmtree(folder, ignore_errors=True)
+    finally:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+        finally:
+            try:
+                f.close()
+            except OSError:  # the unwritten lock line of a full disk
+                pass

@@ -89,6 +89,10 @@ def preset_for(trained: fit.Trained) -> str:
 
 
 # ------------------------------------------------------------------------------ map + evaluation
+# room an evaluation's outputs need, reserved before its episodes (results.json and three pictures are
+# about 0.1 MiB; 20x that): a disk too full for them is refused up front, not after every episode ran
+EVAL_OUTPUT_BYTES = 2 * 2 ** 20
+
 def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig, variants: dict):
     """The compiled evaluation chunk for ``trained`` from ``programs`` (filled on first use), shared by
     checkpoints whose method and configs agree up to the seed, and by the calibration pass and the
@@ -210,7 +214,7 @@ def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, datase
     """
     env, variants, cfg, path = prepare_evaluation(checkpoint, cfg, dataset, shift, overrides)
     out = out or os.path.join(checkpoint, 'eval')
-    files.check_writable(out, what='the evaluation')  # before the map and the episodes, not after
+    files.check_writable(out, EVAL_OUTPUT_BYTES, 'the evaluation\'s results and pictures')  # before the episodes
     trained = fit.load(checkpoint, log=log)
     data = read_data(path, env)
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
@@ -244,7 +248,8 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
         raise ValueError(f'the checkpoints were trained on different environments ({", ".join(env_names)}); '
                          'compare checkpoints of one environment')
     labels = checkpoint_labels(checkpoints, [p[2].method for p in prepared])  # config.json read once, above
-    files.check_writable(out, what='the evaluation')  # before any map or episode
+    files.check_writable(out, EVAL_OUTPUT_BYTES * (len(checkpoints) + 1),  # before any map or episode
+                         'the evaluation\'s results and pictures')
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
     table, per, programs, observations = {}, {}, {}, {}
     for label, ckpt, (env, variants, c, path) in zip(labels, checkpoints, prepared):

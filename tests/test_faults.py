@@ -538,6 +538,57 @@ def test_no_room_and_read_only_outputs_fail_before_the_work(small_disk, grid_fil
     assert 'is a file, not a folder' in _error_lines(capsys.readouterr().err)[0]
 
 
+def test_nothing_long_ends_in_a_lost_result(small_disk, grid_file, grid_data, tmp_path, capsys, monkeypatch):
+    """A full disk: a new train leaves no empty folder or lock behind; a metrics line that does not fit
+    is cut off whole (nothing left to flush at close); evaluate reserves room for its outputs before
+    any episode; a collect whose picture does not fit keeps its complete data and says so."""
+    from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
+
+    disk = small_disk('8m')
+    metrics = os.path.join(disk, 'metrics.jsonl')
+    with open(metrics, 'wb') as f:
+        f.write(b'{"step": 50}\n')  # a whole line; its page has room left
+    run_dir = str(tmp_path / 'run')
+    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=100)
+    fit.train('gcbc', cfg, grid_data, run_dir, progress=False, log=lambda *_: None)
+    _fill(disk)
+    # train: not even the lock's line fits; exit 2, one line naming the folder, no folder left
+    new = os.path.join(disk, 'new')
+    assert cli.main(['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--out', new]) == 2
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and new in lines[0] and 'No space left' in lines[0], lines
+    assert not os.path.exists(new)
+    # a metrics line longer than the room left: a partial write, then ENOSPC; the file is cut back whole
+    f = open(metrics, 'ab', buffering=0)  # pylint: disable=consider-using-with
+    with pytest.raises(OSError, match=f'cannot append to {re.escape(metrics)}: No space left'):
+        fit._append(f, json.dumps({'step': 100, 'pad': 'x' * 20000}) + '\n')
+    f.close()  # nothing buffered: no second error, no torn line
+    assert open(metrics, 'rb').read() == b'{"step": 50}\n'
+    # evaluate: refused before the map and the episodes (fit.load is not reached)
+    monkeypatch.setattr(fit, 'load', lambda *a, **k: pytest.fail('loaded a checkpoint on a full disk'))
+    ev_out = os.path.join(disk, 'eval')
+    assert cli.main(['evaluate', '--checkpoint', run_dir, '--dataset', grid_file, '--out', ev_out]) == 2
+    lines = _error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and "the evaluation's results and pictures needs about 2.0 MiB" in lines[0], lines
+    assert not os.path.exists(ev_out)
+    monkeypatch.undo()
+    # collect: the data are written, the picture finds no room -> a warning, exit 0, data complete
+    def no_room(result, path, n=12):
+        with open(path, 'wb') as fp:
+            fp.write(b'\x89PNG half')
+        raise OSError(28, 'No space left on device')
+
+    monkeypatch.setattr(collect, 'plot', no_room)
+    out = str(tmp_path / 'pm.npz')
+    assert cli.main(['collect', '--env', 'pointmaze-medium', '--style', 'explore', '--episodes', '4', '--steps', '30',
+                     '--out', out]) == 0
+    err = capsys.readouterr().err
+    assert f'warning: {tmp_path / "pm.png"} could not be written (No space left on device); the data in' in err
+    assert not os.path.exists(tmp_path / 'pm.png')  # no half picture
+    assert dsm.read_ogbench(out, add_info=False)['observations'].shape == (4 * 30, 2)
+    assert json.load(open(tmp_path / 'pm.json'))['picture'] is None
+
+
 # ------------------------------------------------------------------- arguments checked up front
 def test_bad_arguments_are_named_before_any_work(tmp_path, grid_data, grid_file, capsys, monkeypatch):
     run_dir = str(tmp_path / 'run')

@@ -207,10 +207,7 @@ def _trim_metrics(path: str, step: int) -> None:
 
     with open(path) as f:
         lines = [ln for ln in f if ln.strip() and keep(ln)]
-    tmp = path + '.tmp'
-    with open(tmp, 'w') as f:
-        f.writelines(lines)
-    os.replace(tmp, path)
+    files.write_text(path, ''.join(lines))
 
 
 def checkpoint_steps(out: str) -> list[int]:
@@ -354,11 +351,13 @@ def _check_room(outs: list[str], state, cfg, start: int) -> None:
 
 
 def _append(f, line: str) -> None:
-    """Append one line to an open metrics file; a failed write is cut off again (no torn line)."""
+    """Append one line to a metrics file opened unbuffered (``'ab', buffering=0``: nothing is left to
+    flush at close); a failed write is cut off again (no torn line)."""
     pos = f.tell()
     try:
-        f.write(line)
-        f.flush()
+        data = line.encode()
+        while data:
+            data = data[f.write(data):]
     except OSError as e:
         try:
             f.truncate(pos)
@@ -387,7 +386,8 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
 
         bar = tqdm(total=cfg.steps, initial=start, desc=desc, unit='upd', smoothing=0.1)
     t_last, first, step = time.perf_counter(), True, start
-    metric_files = [open(os.path.join(o, 'metrics.jsonl'), 'a') for o in outs]  # pylint: disable=consider-using-with
+    metric_files = [open(os.path.join(o, 'metrics.jsonl'), 'ab', buffering=0)  # pylint: disable=consider-using-with
+                    for o in outs]
     try:
         while step < cfg.steps:
             state, m = chunk(state, ds)
