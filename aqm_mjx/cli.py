@@ -75,14 +75,16 @@ def cmd_rollouts(a):
     import numpy as np  # pylint: disable=import-outside-toplevel
     from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
-    from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import envs, memory  # pylint: disable=import-outside-toplevel
     from aqm_mjx.envs.render import render_maze  # pylint: disable=import-outside-toplevel
 
     for name in ('envs', 'steps'):
         if getattr(a, name) < 1:
             raise ValueError(f'--{name} must be >= 1; got {getattr(a, name)}')
-    os.makedirs(a.out, exist_ok=True)
     env = envs.make(a.env)
+    memory.check(a.envs * (memory.env_state_bytes(env) * memory.FACTOR + 8 * a.steps),
+                 f'{a.envs:,} environments x {a.steps:,} steps', '--envs (or --steps)')
+    os.makedirs(a.out, exist_ok=True)
     print(f'{env}\ndevice: {jax.devices()[0]}; {a.envs} environments x {a.steps} control steps (random actions)')
     n_tasks = env.num_tasks
     keys = jax.random.split(jax.random.PRNGKey(a.seed), a.envs)
@@ -139,6 +141,7 @@ def cmd_collect(a):
     cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
                                 batch=a.batch, seed=a.seed, layout=a.layout).resolved()
     collect.check_output(a.out, a.overwrite, cfg)  # name, folder and free space before minutes of collection
+    collect.check_memory(cfg)
     import jax  # pylint: disable=import-outside-toplevel
 
     print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
@@ -179,6 +182,7 @@ def cmd_train(a):
     _enable_compile_cache()
     from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
     from aqm_mjx.data import dataset  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
     from aqm_mjx.learn import fit, methods  # pylint: disable=import-outside-toplevel
 
     method = methods.get(a.method or 'aqm')
@@ -203,6 +207,8 @@ def cmd_train(a):
                              'name), which sets the observation size; give --env instead')
         if a.steps is not None:
             cfg = dataclasses.replace(cfg, steps=int(a.steps))
+        memory.check(memory.training_bytes(cfg, obs_size, action_size), f'an update of batch {cfg.batch_size:,}',
+                     '--set batch_size')
     elif a.method or a.preset or a.seed is not None or sets or a.env:
         # every option given with --resume is checked against the saved run (the same values pass)
         if not os.path.exists(os.path.join(a.out, 'config.json')):

@@ -199,8 +199,25 @@ def prepare_evaluation(checkpoint: str, cfg: Optional[RunConfig], dataset: Optio
         cfg = RunConfig.preset(preset_for_name(train_cfg.preset), method=method.name, env=train_cfg.env)
     cfg = RunConfig(method=method.name, train=train_cfg, map=cfg.map, agent=cfg.agent,
                     protocol=cfg.protocol).with_overrides(list(overrides))
+    check_evaluation_memory(env, cfg, len(variants))  # before the episode table is allocated
     plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)  # bad task ids fail before any work
     return env, variants, cfg, path
+
+
+def check_evaluation_memory(env, cfg: RunConfig, n_layouts: int) -> None:
+    """Refuse an evaluation whose episode table (host: the leg log and outcome of every episode) or
+    chunk of environments (device: ``protocol.envs`` states) cannot fit, naming the option."""
+    from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.agent.rules import LEG_FIELDS, MAX_LEGS  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.evaluation.protocol import agent_specs  # pylint: disable=import-outside-toplevel
+
+    p = cfg.protocol
+    rows = len(agent_specs(1.0, p.ablations)) * n_layouts * len(p.tasks or range(env.num_tasks)) * p.episodes
+    memory.check(rows * (MAX_LEGS * LEG_FIELDS * 4 + 256), f'the episode table ({rows:,} episodes)',
+                 '--episodes (or the layouts and ablations)', (memory.host_available(), 'host'))
+    if p.backend == 'mjx':
+        memory.check(p.envs * memory.env_state_bytes(env) * memory.FACTOR,
+                     f'a chunk of {p.envs:,} environments', '--envs')
 
 
 def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, dataset: Optional[str] = None,

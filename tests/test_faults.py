@@ -589,6 +589,42 @@ def test_nothing_long_ends_in_a_lost_result(small_disk, grid_file, grid_data, tm
     assert json.load(open(tmp_path / 'pm.json'))['picture'] is None
 
 
+def test_batches_that_cannot_fit_are_refused_before_compiling(tmp_path, grid_file, grid_data, capsys, monkeypatch):
+    """With 1 GiB available, absurd sizes exit 2 with one line naming the option, before anything is
+    compiled or written; the sizes the suite uses pass the same check."""
+    from aqm_mjx import envs, memory  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
+
+    run_dir = str(tmp_path / 'run')
+    fit.train('gcbc', methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=100), grid_data, run_dir,
+              progress=False, log=lambda *_: None)
+    gib = 2 ** 30
+    monkeypatch.setattr(memory, 'host_available', lambda: gib)
+    monkeypatch.setattr(memory, 'available', lambda: (gib, 'host'))
+    monkeypatch.setattr(jax, 'jit', lambda *a, **k: pytest.fail('compiled before the memory check'))
+    cases = [(['collect', '--env', 'pointmaze-medium', '--episodes', '1000000', '--batch', '64',
+               '--out', str(tmp_path / 'c.npz')], 'lower --episodes'),
+             (['collect', '--env', 'pointmaze-medium', '--episodes', '10', '--batch', '100000000',
+               '--out', str(tmp_path / 'c.npz')], 'lower --batch'),
+             (['evaluate', '--checkpoint', run_dir, '--dataset', grid_file, '--episodes', '100000000',
+               '--out', str(tmp_path / 'ev')], 'lower --episodes'),
+             (['evaluate', '--checkpoint', run_dir, '--dataset', grid_file, '--envs', '1000000000',
+               '--out', str(tmp_path / 'ev')], 'lower --envs'),
+             (['rollouts', '--env', 'antmaze-medium', '--envs', '100000000', '--out', str(tmp_path / 'ro')],
+              'lower --envs'),
+             (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--set',
+               'batch_size=100000000', '--out', str(tmp_path / 'tr')], 'lower --set batch_size')]
+    for argv, option in cases:
+        assert cli.main(argv) == 2, argv
+        lines = _error_lines(capsys.readouterr().err)
+        assert len(lines) == 1 and 'memory; 1.0 GiB are available' in lines[0] and option in lines[0], lines
+    assert sorted(os.listdir(tmp_path)) == ['grid.npz', 'run']  # nothing written
+    # what the suite runs fits in that 1 GiB
+    collect.check_memory(collect.CollectConfig(env='antmaze-medium', episodes=100, batch=55))
+    memory.check(memory.training_bytes(methods.get('aqm').preset('cpu', env='antmaze-medium'), 29, 8), 'cpu', 'x')
+    assert 0 < memory.env_state_bytes(envs.make('antmaze-medium')) < 2 ** 20
+
+
 # ------------------------------------------------------------------- arguments checked up front
 def test_bad_arguments_are_named_before_any_work(tmp_path, grid_data, grid_file, capsys, monkeypatch):
     run_dir = str(tmp_path / 'run')

@@ -351,6 +351,20 @@ def estimated_bytes(cfg: 'CollectConfig') -> int:
     return 4 * width * c.steps * (c.episodes + c.val_episodes)
 
 
+def check_memory(cfg: 'CollectConfig') -> None:
+    """Refuse a collection whose data (host: the arrays and their copy on writing) or batch
+    (device: ``batch`` environments and their trajectories) cannot fit, naming the option."""
+    from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
+
+    c = cfg.resolved()
+    memory.check(2 * estimated_bytes(c), f'{c.episodes + c.val_episodes:,} episodes x {c.steps:,} states',
+                 '--episodes (or --steps)', (memory.host_available(), 'host'))
+    env = envs.make(c.env)
+    width = env.obs_size + env.action_size + env.mj_model.nq + env.mj_model.nv + 1
+    memory.check(c.batch * (memory.env_state_bytes(env) * memory.FACTOR + 4 * width * c.steps),
+                 f'a batch of {c.batch:,} environments', '--batch')
+
+
 def check_output(path: str, overwrite: bool = False, cfg: Optional['CollectConfig'] = None) -> str:
     """Check an output path before any work: an ``.npz`` whose file and ``-val`` twin do not exist
     (unless ``overwrite``), in a folder that can be written, with room for a collection of ``cfg``

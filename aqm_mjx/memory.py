@@ -1,0 +1,75 @@
+"""How much memory a command's batch needs, estimated before anything is compiled or allocated.
+
+A batch that cannot fit is refused up front with the option to lower named, instead of failing
+after minutes of compilation with an allocator's traceback (``std::bad_alloc``,
+``_ArrayMemoryError``). The estimates are coarse upper bounds (a small factor over the arrays
+the command holds at once); they catch sizes that are wrong by orders of magnitude, not the last
+10%.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Optional
+
+#: headroom over the arrays a jitted step holds (its inputs, outputs and temporaries)
+FACTOR = 4
+
+
+class MemoryEstimateError(ValueError):
+    """A batch that will not fit in memory; the message names the option to lower."""
+
+
+def available() -> tuple[int, str]:
+    """``(bytes, where)``: memory available to the default JAX device (its allocator's limit on an
+    accelerator, the host's available memory on a CPU)."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    dev = jax.devices()[0]
+    if dev.platform != 'cpu':
+        stats = dev.memory_stats() or {}
+        if stats.get('bytes_limit'):
+            return int(stats['bytes_limit']) - int(stats.get('bytes_in_use', 0)), f'{dev.platform} device'
+    return host_available(), 'host'
+
+
+def host_available() -> int:
+    """Bytes of host memory available (``MemAvailable``; free pages where /proc/meminfo is absent)."""
+    try:
+        with open('/proc/meminfo') as f:
+            for line in f:
+                if line.startswith('MemAvailable:'):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf('SC_AVPHYS_PAGES') * os.sysconf('SC_PAGE_SIZE')
+
+
+def check(need_bytes: float, what: str, option: str, where: Optional[tuple[int, str]] = None) -> None:
+    """Refuse ``what`` when ``need_bytes`` exceed the memory available, naming ``option``."""
+    free, place = where or available()
+    if need_bytes > free:
+        raise MemoryEstimateError(f'{what} needs about {_size(need_bytes)} of {place} memory; {_size(free)} are '
+                                  f'available: lower {option}')
+
+
+def _size(n: float) -> str:
+    return f'{n / 2 ** 30:.1f} GiB' if n >= 2 ** 30 else f'{n / 2 ** 20:.0f} MiB'
+
+
+def env_state_bytes(env) -> int:
+    """Bytes of one environment's state (traced, not run: :func:`jax.eval_shape` of its reset)."""
+    import jax  # pylint: disable=import-outside-toplevel
+    import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+
+    shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), jnp.int32(1))
+    return int(sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes)))
+
+
+def training_bytes(cfg, obs_size: int, action_size: int) -> int:
+    """Activations of one update: per sample, every MLP width in the config (fields named
+    ``*hidden*``) and the inputs, forward and backward, for a few networks."""
+    widths = sum(sum(v) for f in dataclasses.fields(cfg) if 'hidden' in f.name
+                 for v in [getattr(cfg, f.name)] if isinstance(v, tuple))
+    return int(FACTOR * 4 * 2 * cfg.batch_size * (widths + 3 * obs_size + action_size) * 4)
