@@ -483,7 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
         'compare', help='several methods x seeds on the same data and episodes: table and bar chart',
         description='Collect (or --dataset) once, train every method with --seeds seeds (vmapped in one program '
                     'per method), evaluate every checkpoint on the same episodes, and write OUT/results.json, '
-                    'OUT/table.md and OUT/success.png: per-method mean success with 95%% intervals over seeds '
+                    'OUT/table.md and OUT/success.png: per-method mean success with 95% intervals over seeds '
                     'and over episodes. Re-running the same command after an interrupt resumes: finished methods '
                     'are not trained or evaluated again.')
     k.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')

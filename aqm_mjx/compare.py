@@ -85,7 +85,10 @@ def method_configs(env_name: str, names: Sequence[str], preset: str, overrides: 
             lacks = 'no section has a field' in str(e) or ' field ' in str(e) and str(e).startswith('unknown')
             raise ValueError(f'{n}: {e}' + (f'; give an override one method has as {n}:FIELD=VALUE' if lacks
                                              else '')) from None
-        out[n] = cfg.with_overrides(scoped[n])
+        try:
+            out[n] = cfg.with_overrides(scoped[n])
+        except ValueError as e:
+            raise ValueError(f'{n}: {e} (in {", ".join(f"{n}:{o}" for o in scoped[n])})') from None
     return out
 
 

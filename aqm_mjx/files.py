@@ -12,6 +12,7 @@ import socket
 import sys
 import tempfile
 import time
+from typing import Optional
 
 
 class MissingFileError(FileNotFoundError):
@@ -140,8 +141,7 @@ def run_lock(folder: str):
         except ValueError:
             who = {}
         f.close()
-        raise LockedError(f'{folder} is in use by another aqm-mjx process (pid {who.get("pid", "?")} on '
-                          f'{who.get("host", "?")}, `{who.get("command", "?")}` since {who.get("since", "?")}); '
+        raise LockedError(f'{folder} is in use by another aqm-mjx process ({describe_writer(who)}); '
                           f'wait for it to end or stop it, or choose another --out') from None
     try:
         f.seek(0)
@@ -158,6 +158,32 @@ def run_lock(folder: str):
     finally:
         del _HELD[key]
         _release(f, folder, path, created)
+
+
+def writer_of(folder: str) -> Optional[dict]:
+    """Who holds ``folder``'s lock (``{'pid', 'host', 'command', 'since'}``) when another process is
+    writing into it; None when nobody is (or this process is). Creates nothing."""
+    path = os.path.join(folder, LOCK_NAME)
+    if os.path.realpath(folder) in _HELD or not os.path.exists(path):
+        return None
+    try:
+        with open(path) as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                try:
+                    return json.loads(f.read() or '{}') or {'pid': '?'}
+                except ValueError:
+                    return {'pid': '?'}
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    except OSError:
+        return None
+    return None
+
+
+def describe_writer(who: dict) -> str:
+    """``pid P on HOST, `COMMAND` since T`` of :func:`writer_of`."""
+    return f'pid {who.get("pid", "?")} on {who.get("host", "?")}, `{who.get("command", "?")}` since {who.get("since", "?")}'
 
 
 def _holds_nothing(folder: str) -> bool:

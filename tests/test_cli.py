@@ -132,3 +132,15 @@ def test_cached_executables_load_without_xla_log_lines(tmp_path):
     if 'cpu_aot_loader' not in twice('plain'):
         pytest.skip('this XLA does not log when it loads a cached executable')
     assert 'cpu_aot_loader' not in twice('cli')
+
+
+def test_every_help_text_prints_without_format_leftovers(capsys):
+    """Each subcommand's --help: exit 0 and no '%%' (argparse formats help strings, not descriptions)."""
+    names = [a for a in cli.build_parser()._subparsers._group_actions[0].choices]  # pylint: disable=protected-access
+    assert {'compare', 'merge', 'train', 'evaluate', 'collect', 'run'} <= set(names)
+    for name in names:
+        with pytest.raises(SystemExit) as e:
+            cli.main([name, '--help'])
+        assert e.value.code == 0
+        text = capsys.readouterr().out
+        assert '%%' not in text and 'usage: aqm-mjx ' + name in text, name

@@ -85,6 +85,8 @@ def test_requests_are_checked_before_any_work(tmp_path):
         compare.method_configs('pointmaze-medium', ['aqm', 'gcbc'], 'ci', ['lr_quasimetric=1e-4'])
     with pytest.raises(ValueError, match=r'^aqm: .*multiple of updates_per_call[^;]*$'):  # a bad value: no scoping hint
         compare.method_configs('pointmaze-medium', ['aqm', 'gcbc'], 'ci', ['steps=7'])
+    with pytest.raises(ValueError, match=r"^gcbc: .*'lr_policy'.* \(in gcbc:lr_policy=1\)$"):  # a scoped one names its method
+        compare.method_configs('pointmaze-medium', ['aqm', 'gcbc'], 'ci', ['gcbc:lr_policy=1'])
     cfgs = compare.method_configs('pointmaze-medium', ['gcivl', 'gcbc'], 'ci',
                                   ['steps=100', 'gcivl:actor_p_trajectory=0.5', 'gcivl:actor_p_random=0.5'])
     assert cfgs['gcivl'].train.steps == cfgs['gcbc'].train.steps == 100

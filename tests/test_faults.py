@@ -290,7 +290,8 @@ def test_run_with_other_settings_is_refused_and_more_steps_extend(tmp_path, grid
     longer = dataclasses.replace(cfg.train, steps=n + 100)
     t = fit.train(cfg.method, longer, grid_data, tdir, resume='auto', progress=False, log=quiet)
     assert t.step == n + 100 and fit.checkpoint_steps(tdir)[-1] == n + 100  # extended, not skipped
-    with pytest.raises(ValueError, match=f'trained to step {n + 100}, past the {n} asked for'):
+    with pytest.raises(ValueError, match=f'trained to step {n + 100}, past the {n} asked for; ask for at least '
+                                         rf'{n + 100} updates \(train --steps, run --set train.steps\)'):
         fit.train(cfg.method, cfg.train, grid_data, tdir, resume='auto', progress=False, log=quiet)
 
 
@@ -623,6 +624,56 @@ def test_batches_that_cannot_fit_are_refused_before_compiling(tmp_path, grid_fil
     collect.check_memory(collect.CollectConfig(env='antmaze-medium', episodes=100, batch=55))
     memory.check(memory.training_bytes(methods.get('aqm').preset('cpu', env='antmaze-medium'), 29, 8), 'cpu', 'x')
     assert 0 < memory.env_state_bytes(envs.make('antmaze-medium')) < 2 ** 20
+
+
+def test_ctrl_c_during_a_save_leaves_no_partial_checkpoint(tmp_path, grid_file, capfd, monkeypatch):
+    """Ctrl-C while Orbax writes checkpoint 100 (its temporary folder already there): exit 130, the
+    resume hint and no traceback, no temporary folder left; --resume goes on from the start."""
+    out = str(tmp_path / 'run')
+    real = ckpt.Checkpointer.save
+
+    def interrupted(self, step, state, config):
+        if step == 100:
+            def partial_then_interrupt(*a, **k):
+                os.makedirs(os.path.join(out, 'checkpoints', '100.orbax-checkpoint-tmp-1764752000'), exist_ok=True)
+                with open(os.path.join(out, 'checkpoints', '100.orbax-checkpoint-tmp-1764752000', 'part'), 'wb') as f:
+                    f.write(b'half an array')
+                raise KeyboardInterrupt
+            self._mngr.save = partial_then_interrupt
+        return real(self, step, state, config)
+
+    monkeypatch.setattr(ckpt.Checkpointer, 'save', interrupted)
+    capfd.readouterr()
+    assert cli.main(['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--out', out]) == 130
+    _, e = capfd.readouterr()
+    assert 'interrupted. Run the same command with --resume' in e and 'Traceback' not in e, e
+    assert os.listdir(os.path.join(out, 'checkpoints')) == []
+    monkeypatch.setattr(ckpt.Checkpointer, 'save', real)
+    assert cli.main(['train', '--dataset', grid_file, '--resume', '--out', out]) == 0
+    assert fit.checkpoint_steps(out) == [100, 200]
+
+
+def test_evaluating_a_folder_in_training_names_the_writer(tmp_path, grid_data):
+    """fit.load of a folder another process holds: one warning naming that process (pid, command), and
+    an error naming it when no checkpoint can be read; a folder nobody holds: no warning."""
+    out = str(tmp_path / 'run')
+    fit.train('gcbc', methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=100), grid_data, out,
+              progress=False, log=lambda *_: None)
+    logs = []
+    assert fit.load(out, log=logs.append).step == 100 and logs == []
+    holder = subprocess.Popen([sys.executable, '-c', 'import sys, time\nfrom aqm_mjx import files\n'
+                               f'with files.run_lock({out!r}):\n    print("held", flush=True)\n    time.sleep(60)'],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == 'held'
+        assert fit.load(out, log=logs.append).step == 100
+        assert len(logs) == 1 and f'being trained by another process (pid {holder.pid} on' in logs[0], logs
+        _tear(out, 100)  # as when the writer deletes the step being read (keep)
+        with pytest.raises(ckpt.CheckpointError, match=rf'while another process trains into it \(pid {holder.pid}'):
+            fit.load(out, log=lambda *_: None)
+    finally:
+        holder.kill()
+        holder.wait()
 
 
 # ------------------------------------------------------------------- arguments checked up front

@@ -100,6 +100,11 @@ class Checkpointer:
                 self._mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),
                                                                    config=ocp.args.JsonSave(config)), force=True)
                 self._mngr.wait_until_finished()
+        except KeyboardInterrupt:  # Ctrl-C mid-save: no half checkpoint, no Orbax traceback after the hint
+            self._failed = True
+            _silence_leftovers()
+            self._remove_partial()
+            raise
         except Exception as e:  # pylint: disable=broad-except  (Orbax and TensorStore raise many kinds)
             self._failed = True
             _silence_leftovers()

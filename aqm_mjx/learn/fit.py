@@ -174,7 +174,7 @@ def check_resumable(out: str, method: str, cfg, obs_size: int, action_size: int)
                          f'another --out, or drop the changes to continue it')
     if cfg.steps < max(done):
         raise ValueError(f'{out} is trained to step {max(done)}, past the {cfg.steps} asked for; ask for '
-                         f'--steps >= {max(done)} or choose another --out')
+                         f'at least {max(done)} updates (train --steps, run --set train.steps) or choose another --out')
 
 
 def check_against_checkpoint(out: str, meta: dict, saver: ckpt.Checkpointer, step: Optional[int] = None) -> None:
@@ -533,12 +533,23 @@ def load(out: str, step: Optional[int] = None, log=print) -> Trained:
     arrays are finite and match the digest saved with them; a newer one that is not is named in a
     warning line). Raises :class:`~aqm_mjx.learn.checkpoint.CheckpointError` when none is."""
     method, cfg, meta = read_meta(out)
+    writer = files.writer_of(out)
+    if writer:  # its checkpoints come and go (keep) while they are read
+        log(f'warning: {out} is being trained by another process ({files.describe_writer(writer)}); reading its '
+            'newest checkpoint now')
     saver = ckpt.Checkpointer(out, keep=None, create=False)
     try:
         check_against_checkpoint(out, meta, saver, step)
         learner = method.make(cfg, meta['obs_size'], meta['action_size'])
         template = learner.init(jax.random.PRNGKey(0))
-        s, state, _ = saver.restore(template, step=step, log=log)  # non-finite or damaged: the previous one
+        quiet_log = (lambda *_: None) if writer else log  # a step the writer deleted is not damage
+        s, state, _ = saver.restore(template, step=step, log=quiet_log)  # non-finite or damaged: the previous one
+    except ckpt.CheckpointError as e:
+        if writer:
+            raise ckpt.CheckpointError(f'no checkpoint of {out} could be read while another process trains into '
+                                       f'it ({files.describe_writer(writer)}): wait for it to end, or copy the '
+                                       'folder and evaluate the copy') from None
+        raise
     finally:
         saver.close()
     return Trained(method.name, cfg, learner, state, s, meta)
