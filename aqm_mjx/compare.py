@@ -220,6 +220,27 @@ _SHARED = ('data_sha256', 'env', 'style', 'preset', 'seeds', 'eval_seed', 'split
            'variants')
 
 
+def _row_faults(r: dict) -> list[str]:
+    """What in ``r['rows']`` the table could not print: per row and layout, a numeric mean, task
+    rates and seed means, and intervals that are pairs of numbers (or none)."""
+    num = lambda x: isinstance(x, (int, float)) and not isinstance(x, bool)  # noqa: E731
+    pair = lambda x: x is None or (isinstance(x, list) and len(x) == 2 and all(map(num, x)))  # noqa: E731
+    faults = []
+    for name, row in r['rows'].items():
+        for v in r.get('variants') or []:
+            cell = row.get(v) if isinstance(row, dict) else None
+            if not isinstance(cell, dict):
+                faults.append(f'row {name!r} has no layout {v!r}')
+                continue
+            bad = [k for k in ['mean'] + [f'task_{t}' for t in r.get('tasks') or []] if not num(cell.get(k))]
+            if not (isinstance(cell.get('seed_means'), list) and all(map(num, cell['seed_means']))):
+                bad.append('seed_means')
+            bad += [k for k in ('seed_ci95', 'episodes_ci95') if not pair(cell.get(k))]
+            if bad:
+                faults.append(f'row {name!r}, layout {v!r}: {", ".join(bad)} not numbers')
+    return faults
+
+
 def _read_comparison(folder: str) -> dict:
     """``FOLDER/results.json`` of a finished comparison, its parts that :func:`merge` reads checked
     (types and the rows and configs of every method), the file named on any fault."""
@@ -239,6 +260,8 @@ def _read_comparison(folder: str) -> dict:
                 faults.append(f"{key!r} lacks method(s) {lost}")
     if not isinstance(r.get('overrides', []), list):
         faults.append(f"'overrides' is {type(r['overrides']).__name__}, not a list")
+    if not faults:  # every number the table prints is a number
+        faults += _row_faults(r)
     if faults:
         raise files.BadFileError(f'{path} is not a finished comparison: ' + '; '.join(faults))
     return r

@@ -377,6 +377,8 @@ def test_merge_never_writes_into_an_input(tmp_path, capsys):
                       (json.dumps(dict(good, methods='hiql')), "'methods' is 'hiql'"),
                       (json.dumps(dict(good, rows={})), "'rows' lacks method(s) ['hiql']"),
                       (json.dumps([good]), 'holds a JSON list'),
+                      (json.dumps(dict(good, rows={'hiql': {'base': dict(good['rows']['hiql']['base'], mean='abc')}})),
+                       "row 'hiql', layout 'base': mean not numbers"),
                       (json.dumps(good)[:200], 'is not valid JSON')):
         with open(os.path.join(bad, 'results.json'), 'w') as f:
             f.write(text)
