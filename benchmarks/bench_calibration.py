@@ -8,8 +8,10 @@ For each number of calibration episodes and each of ``--keys`` keys (the calibra
 the pass that ``protocol.calibrate`` runs before an evaluation: the agent without pruning on the
 training layout, between start and goal cells that no evaluation task uses. From its legs, at each
 ``--false-alarm`` rate: the stall rule's patience, the fixed rule's kappa and the paper's rule's
-kappa (keypoint edges alone). Prints min / median / max over the keys and the spread
-(max / min - 1, the issue's "moves by at most 20%"); ``--out`` writes the rows as JSON.
+kappa (keypoint edges alone); at each ``--stall-scale`` C, the stall rule's patience as
+``protocol.stall_scale`` sets it (C x the 90th percentile of the longest stall, rounded to a step).
+Prints min / median / max over the keys and the spread (max / min - 1, the issue's "moves by at
+most 20%"); ``--out`` writes the rows as JSON.
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ def main():
     p.add_argument('--keys', type=int, default=5, help='calibration keys (those of seeds 0 .. keys - 1)')
     p.add_argument('--episodes', type=int, nargs='+', default=[100], help='calibration episodes per pass')
     p.add_argument('--false-alarm', type=float, nargs='+', default=[0.005, 0.01, 0.02])
+    p.add_argument('--stall-scale', type=float, nargs='*', default=[6.0],
+                   help='patience = C x the 90th percentile of the longest stall (protocol.stall_scale), per C')
     p.add_argument('--set', action='append', default=[], help='map/agent/protocol override (section.field=value)')
     p.add_argument('--out', default=None)
     a = p.parse_args()
@@ -61,8 +65,18 @@ def main():
                                     protocol.calibration_protocol(proto), progress=False, episodes=eps,
                                     key=jax.random.fold_in(k_eval, protocol.CALIBRATION_FOLD))
             per_key.append([{x: float(v) for x, v in calibration.calibrate(res.legs, q).items()
-                             if x in ('kappa', 'kappa_edges', 'patience', 'legs')} for q in a.false_alarm])
+                             if x in ('kappa', 'kappa_edges', 'patience', 'legs')} for q in a.false_alarm]
+                           + [dict(patience=float(calibration.budget(calibration.calibrate(res.legs, 0.005, stall_scale=c),
+                                                                     'stall', 1.0, 0.0)[1]))
+                              for c in a.stall_scale])
         secs = (time.perf_counter() - t0) / a.keys
+        for ci, c in enumerate(a.stall_scale):
+            v = np.array([k[len(a.false_alarm) + ci]['patience'] for k in per_key])
+            spread = float(v.max() / v.min() - 1)
+            rows.append(dict(episodes=n, stall_scale=c, patience=dict(values=v.tolist(), min=float(v.min()),
+                             median=float(np.median(v)), max=float(v.max()), spread=spread)))
+            print(f'{n:4d} episodes, patience {c:g} x q90 of the longest stall: {v.min():.4g} / {np.median(v):.4g} / '
+                  f'{v.max():.4g} (+{100 * spread:.0f}%)')
         for qi, q in enumerate(a.false_alarm):
             cells = [c[qi] for c in per_key]
             row = dict(episodes=n, false_alarm=q, legs=[int(c['legs']) for c in cells], seconds_per_pass=round(secs, 1))
