@@ -393,6 +393,19 @@ def test_an_edited_config_json_is_named_and_checkpoints_stay(tmp_path, grid_data
         assert sorted(os.listdir(os.path.join(out, 'checkpoints'))) == listing  # nothing moved aside
         assert not os.path.exists(os.path.join(out, 'checkpoints_unreadable'))
         restore()
+    # truncated, or not an object: the file is named, no JSON decoder's position alone
+    for text, message in ((original[: len(original) // 2], r'config.json is not valid JSON \(.*\); it is damaged or '
+                                                              'truncated'),
+                          ('[1, 2]', r'config.json holds a JSON list, not the object')):
+        with open(os.path.join(out, 'config.json'), 'w') as f:
+            f.write(text)
+        for argv in (['evaluate', '--checkpoint', out, '--dataset', grid_file],
+                     ['train', '--dataset', grid_file, '--resume', '--steps', '300', '--out', out]):
+            assert cli.main(argv) == 2
+            lines = _error_lines(capsys.readouterr().err)
+            assert len(lines) == 1 and re.search(message, lines[0]) and out in lines[0], (argv, lines)
+        assert sorted(os.listdir(os.path.join(out, 'checkpoints'))) == listing
+        restore()
     assert fit.load(out, log=lambda *_: None).step == 200
 
 

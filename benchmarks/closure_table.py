@@ -1,0 +1,108 @@
+"""The closed-corridor table of several models from one ``aqm-mjx evaluate`` folder.
+
+    aqm-mjx evaluate --checkpoint A --checkpoint B ... --shift closures --episodes 20 \
+        --ablations no-pruning paper=1 paper=cal --backend ogbench --out OUT
+    python benchmarks/closure_table.py OUT [--rows aqm no-pruning paper=1 paper=cal]
+
+Per model (checkpoint) and row: success on the unchanged maze and on the mean of the closed
+corridors (95% Wilson intervals over the pooled episodes), the closure gain over no pruning, and
+the closure share (closure success / unchanged-maze success). The gain's and the share's 95%
+intervals come from a parametric bootstrap over the episodes: every (layout, task) cell redrawn
+binomially at its observed rate (10,000 draws; the rows' episodes are drawn apart, so for the gain
+the interval is wider than a paired one would be). Prints Markdown; ``--json`` writes the numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from aqm_mjx.evaluation import stats  # noqa: E402  (run as a script from the repository)
+
+DRAWS = 10_000
+
+
+def _counts(summary: dict, layouts, tasks, n: int) -> np.ndarray:
+    """``[layouts, tasks]`` successes (rate x episodes, rounded) of one row."""
+    return np.array([[round(summary[v][f'task_{t}'] * n) for t in tasks] for v in layouts])
+
+
+def model_rows(res: dict, rows, n: int, rng) -> list[dict]:
+    layouts, tasks = res['variants'], res['tasks']
+    closed = [i for i, v in enumerate(layouts) if v.startswith('close')]
+    base = layouts.index('base')
+    counts = {r: _counts(res['summary'][r], layouts, tasks, n) for r in rows}
+    draws = {r: rng.binomial(n, c / n, size=(DRAWS,) + c.shape) for r, c in counts.items()}
+    out = []
+    for r in rows:
+        c, d = counts[r], draws[r]
+        nb, nc = len(tasks) * n, len(closed) * len(tasks) * n
+        b_rate, c_rate = c[base].sum() / nb, c[closed].sum() / nc
+        b_draw, c_draw = d[:, base].sum(-1) / nb, d[:, closed].sum((-1, -2)) / nc
+        share_draw = c_draw / np.maximum(b_draw, 1e-9)
+        row = dict(row=r, base=b_rate, base_ci=list(stats.wilson(c[base].sum(), nb)), closures=c_rate,
+                   closures_ci=list(stats.wilson(c[closed].sum(), nc)),
+                   per_closure=[c[i].sum() / (len(tasks) * n) for i in closed],
+                   share=c_rate / b_rate if b_rate else float('nan'),
+                   share_ci=np.percentile(share_draw, [2.5, 97.5]).tolist())
+        if r != 'no-pruning' and 'no-pruning' in counts:
+            cn, dn = counts['no-pruning'], draws['no-pruning']
+            row['gain'] = c_rate - cn[closed].sum() / nc
+            row['gain_ci'] = np.percentile(c_draw - dn[:, closed].sum((-1, -2)) / nc, [2.5, 97.5]).tolist()
+            row['base_diff'] = b_rate - cn[base].sum() / nb
+            row['base_diff_ci'] = np.percentile(b_draw - dn[:, base].sum(-1) / nb, [2.5, 97.5]).tolist()
+        out.append(row)
+    return out
+
+
+def pct(x) -> str:
+    return f'{100 * x:.0f}'
+
+
+def span(ci) -> str:
+    return f'[{100 * ci[0]:.0f}, {100 * ci[1]:.0f}]'
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('folder', help='an `aqm-mjx evaluate` output folder with one sub-folder per checkpoint')
+    p.add_argument('--rows', nargs='+', default=['aqm', 'no-pruning', 'paper=1', 'paper=cal'])
+    p.add_argument('--json', default=None)
+    a = p.parse_args()
+    top = json.load(open(os.path.join(a.folder, 'results.json')))
+    n = int(top['episodes'])
+    rng = np.random.default_rng(0)
+    table, lines = {}, []
+    closed = [v for v in top['variants'] if v.startswith('close')]
+    lines.append('| model | row | calibrated | base | ' + ' | '.join(closed) + ' | closures (mean) | base - no pruning '
+                 '| gain over no pruning | share (closures / base) |')
+    lines.append('|' + '---|' * (8 + len(closed)))
+    for label in top['checkpoints']:
+        res = json.load(open(os.path.join(a.folder, label, 'results.json')))
+        cal = res.get('calibration') or {}
+        table[label] = dict(calibration=cal, rows=model_rows(res, a.rows, n, rng))
+        for r in table[label]['rows']:
+            how = ('patience ' + f'{cal.get("patience", float("nan")):g}' if r['row'] == 'aqm'
+                   else f'kappa {cal.get("kappa_edges", float("nan")):g}' if r['row'] == 'paper=cal' else '-')
+            diff = (f'{100 * r["base_diff"]:+.0f} {span(r["base_diff_ci"])}' if 'base_diff' in r else '-')
+            gain = (f'**{100 * r["gain"]:+.1f}** {span(r["gain_ci"])}' if 'gain' in r else '-')
+            lines.append(f'| {label} | {r["row"]} | {how} | {pct(r["base"])} {span(r["base_ci"])} | '
+                         + ' | '.join(pct(x) for x in r['per_closure'])
+                         + f' | {pct(r["closures"])} {span(r["closures_ci"])} | {diff} | {gain} | '
+                           f'{pct(r["share"])} {span(r["share_ci"])} |')
+    lines.append(f'\n{n} episodes per task and layout ({len(top["tasks"])} tasks): {len(top["tasks"]) * n} per '
+                 f'layout and row, {len(closed) * len(top["tasks"]) * n} on the closures; split '
+                 f'{top.get("split")}; seed {top.get("seed")}.')
+    print('\n'.join(lines))
+    if a.json:
+        with open(a.json, 'w') as f:
+            json.dump(dict(folder=a.folder, episodes=n, models=table), f, indent=1)
+
+
+if __name__ == '__main__':
+    main()
