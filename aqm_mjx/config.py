@@ -18,10 +18,6 @@ def option(default: Any, help: str, choices=None):  # pylint: disable=redefined-
     return dataclasses.field(default=default, metadata={'help': help, 'choices': choices})
 
 
-def help_of(f: dataclasses.Field) -> str:
-    return f.metadata.get('help', '')
-
-
 def _annotation(cls, name: str) -> str:
     hints = {}
     for klass in reversed(cls.__mro__):

@@ -69,14 +69,6 @@ def shortest_distances(weights: jax.Array, block: int = 8) -> jax.Array:
     return _blocked_fw(weights, block, with_next=False)[0]
 
 
-def next_hop(weights: jax.Array, dist: jax.Array, i: jax.Array, j: jax.Array) -> jax.Array:
-    """The node after ``i`` on a shortest path to ``j``, from the distances alone, in O(K):
-    ``argmin_{k != i} w(i, k) + d(k, j)`` (``i`` when ``i == j``, -1 when ``j`` is unreachable)."""
-    k = weights.shape[0]
-    cost = jnp.where(jnp.arange(k) == i, jnp.inf, weights[i] + dist[:, j])
-    return jnp.where(i == j, i, jnp.where(jnp.isfinite(dist[i, j]), jnp.argmin(cost), -1)).astype(jnp.int32)
-
-
 def floyd_warshall(weights: jax.Array, block: int = 8) -> tuple[jax.Array, jax.Array]:
     """All-pairs shortest paths of one graph, tracking next hops inside the (blocked) recursion.
 
@@ -113,26 +105,6 @@ def floyd_warshall_batch(weights: jax.Array, chunk: int | None = None, with_next
     out = jax.lax.map(jax.vmap(fn), w.reshape((-1, chunk) + weights.shape[1:]))
     out = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:])[:b], out)
     return out if with_next else (out, None)
-
-
-def extract_path(next_hop: jax.Array, i: jax.Array, j: jax.Array, max_len: int) -> tuple[jax.Array, jax.Array]:
-    """Nodes of the shortest path from ``i`` to ``j``: ``[max_len]`` int32 padded with -1, and its
-    number of nodes (0 if unreachable; a path longer than ``max_len`` is cut)."""
-    reachable = (i >= 0) & (j >= 0) & (next_hop[jnp.maximum(i, 0), jnp.maximum(j, 0)] >= 0)
-
-    def body(cur, _):
-        nxt = jnp.where((cur >= 0) & (cur != j), next_hop[jnp.maximum(cur, 0), j], -1)
-        return nxt, cur
-
-    _, path = jax.lax.scan(body, jnp.where(reachable, i, -1).astype(jnp.int32), None, length=max_len)
-    return path, jnp.sum(path >= 0).astype(jnp.int32)
-
-
-def path_cost(weights: jax.Array, path: jax.Array) -> jax.Array:
-    """Sum of edge weights along a -1-padded path ``[L]``."""
-    a, b = path[:-1], path[1:]
-    ok = (a >= 0) & (b >= 0)
-    return jnp.sum(jnp.where(ok, weights[jnp.maximum(a, 0), jnp.maximum(b, 0)], 0.0))
 
 
 @struct.dataclass

@@ -41,19 +41,19 @@ def pairwise(dist: Dist, a: jax.Array, b: jax.Array) -> jax.Array:
     return jax.vmap(lambda x: jax.vmap(lambda y: dist(x, y))(b))(a)
 
 
-def build_graph(dist: Dist, z: jax.Array, mask: jax.Array, delta: float, slack: float = 0.0,
+def build_graph(dist: Dist, z: jax.Array, mask: jax.Array, delta: float,
                 tau: float | None = None, keypoints: Keypoints | None = None) -> jax.Array:
     """Directed weight matrix of the keypoint graph.
 
     Args:
         dist: pairwise latent quasimetric.
         z: ``[K, D]`` keypoint latents; mask: bool ``[K]`` which are valid.
-        delta: the IWE repel radius; ``tau = 2 delta (1 + slack)`` unless ``tau`` is given.
+        delta: the IWE repel radius; ``tau = 2 delta`` unless ``tau`` is given.
         keypoints: if given, its parent edges are added in both directions whatever tau says.
     Returns:
         ``[K, K]`` float32 weights (``inf`` = no edge; invalid rows and columns all ``inf``).
     """
-    tau = 2.0 * delta * (1.0 + slack) if tau is None else tau
+    tau = 2.0 * delta if tau is None else tau
     d = pairwise(dist, z, z)
     dsym = jnp.maximum(d, d.T)
     both = mask[:, None] & mask[None, :]
