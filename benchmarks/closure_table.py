@@ -82,8 +82,9 @@ def main():
     lines.append('| model | row | calibrated | base | ' + ' | '.join(closed) + ' | closures (mean) | base - no pruning '
                  '| gain over no pruning | share (closures / base) |')
     lines.append('|' + '---|' * (8 + len(closed)))
-    for label in top['checkpoints']:
-        res = json.load(open(os.path.join(a.folder, label, 'results.json')))
+    for label in sorted(top['checkpoints'], key=lambda k: (not k.endswith(':train'), k)):  # README's model first
+        sub = next(d for d in (label, label.replace(':', '_')) if os.path.isdir(os.path.join(a.folder, d)))
+        res = json.load(open(os.path.join(a.folder, sub, 'results.json')))
         cal = res.get('calibration') or {}
         table[label] = dict(calibration=cal, rows=model_rows(res, a.rows, n, rng))
         for r in table[label]['rows']:
