@@ -357,7 +357,10 @@ def build_parser() -> argparse.ArgumentParser:
     from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
 
     presets = list(pipeline.PRESETS)
+    from aqm_mjx import __version__  # pylint: disable=import-outside-toplevel
+
     p = argparse.ArgumentParser(prog='aqm-mjx', description='Adaptive Quasimetric Mapping on MuJoCo MJX.')
+    p.add_argument('--version', action='version', version=f'aqm-mjx {__version__}')
     sub = p.add_subparsers(dest='cmd', required=True)
     r = sub.add_parser(
         'run', help='the whole pipeline: collect (or --dataset) -> train -> keypoints -> evaluate',
@@ -526,6 +529,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None):
     a = build_parser().parse_args(argv)
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+
+    files.COMMAND[:] = ['aqm-mjx'] + list(sys.argv[1:] if argv is None else argv)  # provenance and lock files
     try:
         return a.fn(a)
     except (ValueError, TypeError, OSError, RuntimeError) as err:

@@ -204,6 +204,7 @@ def _write(out: str, result: dict, log) -> None:
     """``result`` (a comparison as ``results.json`` holds it) to ``OUT/results.json``, ``table.md`` and
     ``success.png``."""
     rows, variant, seed_ids = result['rows'], result['variants'][0], result['seeds']
+    result['provenance'] = files.provenance()  # what wrote this table (version, commit, command)
     files.write_json(os.path.join(out, 'results.json'), result, makedirs=True)
     table = markdown(rows, variant, result['tasks'], seed_ids, int(result['episodes']))
     files.write_text(os.path.join(out, 'table.md'), table)

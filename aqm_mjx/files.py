@@ -15,6 +15,36 @@ import time
 from typing import Optional
 
 
+COMMAND: list = []  # the aqm-mjx command line being run (set by cli.main; empty: sys.argv)
+
+
+def _command() -> str:
+    return ' '.join(COMMAND or ['aqm-mjx'] + sys.argv[1:])
+
+
+def provenance() -> dict:
+    """What produced a result: the package version, the git commit of the checkout it runs from
+    (``None`` outside one; ``+dirty`` with uncommitted changes), the command line and the host."""
+    import platform  # pylint: disable=import-outside-toplevel
+    import subprocess  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx import __version__  # pylint: disable=import-outside-toplevel
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    commit = None
+    try:
+        head = subprocess.run(['git', '-C', root, 'rev-parse', 'HEAD'], capture_output=True, text=True, timeout=10)
+        if head.returncode == 0:
+            dirty = subprocess.run(['git', '-C', root, 'status', '--porcelain', '--untracked-files=no'],
+                                   capture_output=True, text=True, timeout=10).stdout.strip()
+            commit = head.stdout.strip() + ('+dirty' if dirty else '')
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return dict(version=__version__, commit=commit, command=_command(),
+                host=socket.gethostname(), machine=platform.machine(), processor=platform.processor() or None,
+                python=platform.python_version())
+
+
 class MissingFileError(FileNotFoundError):
     """A file a run folder should hold is not there; the message says which and why it matters."""
 
@@ -147,7 +177,7 @@ def run_lock(folder: str):
         f.seek(0)
         f.truncate()
         f.write(json.dumps(dict(pid=os.getpid(), host=socket.gethostname(),
-                                command=' '.join(['aqm-mjx'] + sys.argv[1:]), since=time.strftime('%Y-%m-%d %H:%M:%S'))))
+                                command=_command(), since=time.strftime('%Y-%m-%d %H:%M:%S'))))
         f.flush()
     except OSError as e:  # a full disk: not even the lock's few bytes fit
         _release(f, folder, path, created)

@@ -285,7 +285,7 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
     first = list(variants)[0]
     combined = dict(env=env.name, seed=seed, episodes=prepared[0][2].protocol.episodes,
                     split=prepared[0][2].protocol.split, checkpoints=per, tasks=res.tasks, variants=list(variants),
-                    summary=table, config=prepared[0][2].to_dict())
+                    summary=table, config=prepared[0][2].to_dict(), provenance=files.provenance())
     files.write_json(os.path.join(out, 'results.json'), combined, makedirs=True)
     plots.success_bars(table, first, res.tasks, os.path.join(out, 'success.png'),
                        title=f'{env.name} ({first}): every checkpoint on the same episodes')
@@ -339,7 +339,8 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
         summary_ = dict(env=env_name, seed=seed, config=cfg.to_dict(), dataset=os.path.abspath(path),
                         keypoints=rep['keypoints'], success=res.summary,
                         times_s={k: round(v, 1) for k, v in times.items()},
-                        pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')])
+                        pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')],
+                        provenance=files.provenance())
         files.write_json(os.path.join(out, 'summary.json'), summary_)
         head = res.agents[0]  # 'aqm', or 'flat' for a method without a quasimetric
         row = res.summary[head][res.variants[0]]

@@ -144,3 +144,22 @@ def test_every_help_text_prints_without_format_leftovers(capsys):
         assert e.value.code == 0
         text = capsys.readouterr().out
         assert '%%' not in text and 'usage: aqm-mjx ' + name in text, name
+
+
+def test_version_and_provenance(capsys):
+    """--version prints the package's version; provenance() names the version, this checkout's commit
+    (as git reports it) and the command."""
+    import aqm_mjx  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(['--version'])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f'aqm-mjx {aqm_mjx.__version__}'
+    p = files.provenance()
+    assert p['version'] == aqm_mjx.__version__ and p['command'].startswith('aqm-mjx')
+    head = subprocess.run(['git', '-C', os.path.dirname(os.path.dirname(aqm_mjx.__file__)), 'rev-parse', 'HEAD'],
+                          capture_output=True, text=True)
+    if head.returncode == 0:  # a git checkout (CI's clean clone is one)
+        assert p['commit'].split('+')[0] == head.stdout.strip()
+    else:
+        assert p['commit'] is None

@@ -165,6 +165,8 @@ def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(t
     assert row['episodes'] == 4 and len(row['seed_means']) == 2
     res = json.load(open(os.path.join(out, 'eval', 'gcbc', 'results.json')))
     assert set(res['checkpoints']) == {'gcbc:seed_0', 'gcbc:seed_1'}
+    top = json.load(open(os.path.join(out, 'results.json')))  # what made it: version, commit, command
+    assert res['provenance']['version'] == top['provenance']['version'] and 'commit' in top['provenance']
     assert row['seed_means'] == [res['summary'][f'gcbc:seed_{s}/flat']['base']['mean'] for s in (0, 1)]
     for s in (0, 1):
         assert fit.read_meta(os.path.join(out, 'train', 'gcbc', f'seed_{s}'))[1].seed == s

@@ -479,6 +479,7 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
             if a == 'no-pruning':  # at the protocol's rate (0.5%), not calibrate()'s default
                 assert row['calibrated']['false_alarm'] == res['config']['protocol']['false_alarm'] == 0.005
     assert ('legs of no-pruning / base' in printed) == ('base' in res['legs']['no-pruning'])
+    assert res['provenance']['version'] and res['provenance']['command'].startswith('aqm-mjx evaluate')
     assert ('Budgets that cut 0.5% of them' in printed) == bool(res['legs']['no-pruning'])
     # protocol.calibrate: a no-pruning pass on other episodes sets the AQM row's stall patience first,
     # which is the same as giving that patience by hand

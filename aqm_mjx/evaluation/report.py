@@ -8,7 +8,7 @@ from typing import Optional
 import jax
 import numpy as np
 
-from aqm_mjx.files import write_json
+from aqm_mjx.files import provenance, write_json
 from aqm_mjx.evaluation import calibration, plots
 from aqm_mjx.evaluation.evaluate import Results
 from aqm_mjx.mapping.graph import Graph, edge_list
@@ -48,7 +48,7 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
         edges = edge_list(graph.w, np.asarray(graph.mask))
     report = dict(env=env_name, **info, edges=int(len(edges)), agents=res.agents, variants=res.variants,
                   tasks=res.tasks, summary=res.summary, legs=calibration.report(res, false_alarm), timing=res.timing,
-                  backend=jax.default_backend(),
+                  backend=jax.default_backend(), provenance=provenance(),
                   device=str(jax.devices()[0]), device_count=jax.device_count())
     write_json(os.path.join(out, 'results.json'), report)
     first = res.variants[0]
