@@ -357,10 +357,10 @@ def build_parser() -> argparse.ArgumentParser:
     from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
 
     presets = list(pipeline.PRESETS)
-    from aqm_mjx import __version__  # pylint: disable=import-outside-toplevel
+    import aqm_mjx  # pylint: disable=import-outside-toplevel
 
     p = argparse.ArgumentParser(prog='aqm-mjx', description='Adaptive Quasimetric Mapping on MuJoCo MJX.')
-    p.add_argument('--version', action='version', version=f'aqm-mjx {__version__}')
+    p.add_argument('--version', action='version', version=f'aqm-mjx {aqm_mjx.__version__}')
     sub = p.add_subparsers(dest='cmd', required=True)
     r = sub.add_parser(
         'run', help='the whole pipeline: collect (or --dataset) -> train -> keypoints -> evaluate',

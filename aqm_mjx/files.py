@@ -28,7 +28,7 @@ def provenance() -> dict:
     import platform  # pylint: disable=import-outside-toplevel
     import subprocess  # pylint: disable=import-outside-toplevel
 
-    from aqm_mjx import __version__  # pylint: disable=import-outside-toplevel
+    import aqm_mjx  # pylint: disable=import-outside-toplevel
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     commit = None
@@ -40,7 +40,7 @@ def provenance() -> dict:
             commit = head.stdout.strip() + ('+dirty' if dirty else '')
     except (OSError, subprocess.SubprocessError):
         pass
-    return dict(version=__version__, commit=commit, command=_command(),
+    return dict(version=aqm_mjx.__version__, commit=commit, command=_command(),
                 host=socket.gethostname(), machine=platform.machine(), processor=platform.processor() or None,
                 python=platform.python_version())
 
