@@ -213,7 +213,7 @@ def cmd_train(a):
         # every option given with --resume is checked against the saved run (the same values pass)
         if not os.path.exists(os.path.join(a.out, 'config.json')):
             raise FileNotFoundError(f'{a.out} holds no run to resume (no config.json); start a new run without --resume')
-        saved_method, saved, _ = fit.read_meta(a.out)
+        _, saved, _ = fit.read_meta(a.out)
         fit.check_resume_request(a.out, a.method, None)  # another method first: its fields are not comparable
         base = method.preset(a.preset, style=style, env=saved.env, seed=saved.seed) if a.preset else saved
         changes = ([f'env={a.env}'] if a.env else []) + ([f'seed={a.seed}'] if a.seed is not None else []) + sets

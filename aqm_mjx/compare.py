@@ -287,8 +287,9 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     if len(set(real)) != len(real):
         raise ValueError(f'folders repeat: {folders}')
     for f in folders:  # the inputs are only read: no output in, at or linked into one, and no input in the output
-        if files.inside(out, f) or files.inside(f, out):
-            raise ValueError(f'--out {out} ' + ('is or lies inside' if files.inside(out, f) else 'holds')
+        into = files.inside(out, f)
+        if into or files.inside(f, out):
+            raise ValueError(f'--out {out} ' + ('is or lies inside' if into else 'holds')
                              + f' the input {f} (resolved: {os.path.realpath(out)} and {os.path.realpath(f)}); '
                              'merge only reads its inputs: write the merged table to a folder outside every input')
     if os.path.exists(os.path.join(out, 'compare.json')):

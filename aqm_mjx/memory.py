@@ -58,13 +58,20 @@ def _size(n: float) -> str:
     return f'{n / 2 ** 30:.1f} GiB' if n >= 2 ** 30 else f'{n / 2 ** 20:.0f} MiB'
 
 
+_STATE_BYTES: dict = {}  # environment name -> bytes of one state (a trace takes about 2 s)
+
+
 def env_state_bytes(env) -> int:
-    """Bytes of one environment's state (traced, not run: :func:`jax.eval_shape` of its reset)."""
+    """Bytes of one environment's state (traced, not run: :func:`jax.eval_shape` of its reset; once
+    per environment name, so that every checkpoint or method of one environment reuses it)."""
     import jax  # pylint: disable=import-outside-toplevel
     import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
 
-    shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), jnp.int32(1))
-    return int(sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes)))
+    name = getattr(env, 'name', None) or id(env)
+    if name not in _STATE_BYTES:
+        shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), jnp.int32(1))
+        _STATE_BYTES[name] = int(sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes)))
+    return _STATE_BYTES[name]
 
 
 def training_bytes(cfg, obs_size: int, action_size: int) -> int:

@@ -343,12 +343,15 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     return CollectResult(train=train, val=val, config=cfg, stats=stats)
 
 
+def _row_width(env) -> int:
+    """float32 values stored per state: observation, action, qpos, qvel and the terminal flag."""
+    return env.obs_size + env.action_size + env.mj_model.nq + env.mj_model.nv + 1
+
+
 def estimated_bytes(cfg: 'CollectConfig') -> int:
     """Upper bound of the two files' size (float32 observations, actions, qpos and qvel, before compression)."""
     c = cfg.resolved()
-    env = envs.make(c.env)
-    width = env.obs_size + env.action_size + env.mj_model.nq + env.mj_model.nv + 1
-    return 4 * width * c.steps * (c.episodes + c.val_episodes)
+    return 4 * _row_width(envs.make(c.env)) * c.steps * (c.episodes + c.val_episodes)
 
 
 def check_memory(cfg: 'CollectConfig') -> None:
@@ -360,8 +363,7 @@ def check_memory(cfg: 'CollectConfig') -> None:
     memory.check(2 * estimated_bytes(c), f'{c.episodes + c.val_episodes:,} episodes x {c.steps:,} states',
                  '--episodes (or --steps)', (memory.host_available(), 'host'))
     env = envs.make(c.env)
-    width = env.obs_size + env.action_size + env.mj_model.nq + env.mj_model.nv + 1
-    memory.check(c.batch * (memory.env_state_bytes(env) * memory.FACTOR + 4 * width * c.steps),
+    memory.check(c.batch * (memory.env_state_bytes(env) * memory.FACTOR + 4 * _row_width(env) * c.steps),
                  f'a batch of {c.batch:,} environments', '--batch')
 
 

@@ -50,14 +50,23 @@ def state_digest(state: Any) -> str:
     return f'crc32:{crc:08x}'
 
 
+def finite_leaves(state, seeds: Optional[int] = None) -> dict:
+    """``{path: bool}`` per floating leaf of ``state`` (``[S]`` with ``seeds``: every leaf stacked on
+    a leading seed axis): True where all its values are finite. Jittable."""
+    out = {}
+    for path, x in jax.tree_util.tree_flatten_with_path(state)[0]:
+        if jnp.issubdtype(x.dtype, jnp.inexact):
+            ok = jnp.isfinite(x)
+            out[jax.tree_util.keystr(path)] = ok.all() if seeds is None else ok.reshape(seeds, -1).all(1)
+    return out
+
+
 def state_faults(state: Any, config: dict) -> list[str]:
     """What is wrong with a restored ``state`` against the ``config`` saved with it: floating arrays
     with non-finite values (by path), and a digest that differs from the one saved (checkpoints
     written before digests were saved are checked for finiteness alone). Empty when it is sound."""
-    faults, bad = [], []
-    for path, x in jax.tree_util.tree_flatten_with_path(state)[0]:
-        if jnp.issubdtype(jnp.result_type(x), jnp.inexact) and not bool(jnp.isfinite(x).all()):
-            bad.append(jax.tree_util.keystr(path))
+    faults = []
+    bad = [p for p, ok in jax.device_get(finite_leaves(state)).items() if not ok]
     if bad:
         faults.append(f'non-finite values in {", ".join(bad[:3])}{" and more" if len(bad) > 3 else ""}')
     saved = config.get(DIGEST_KEY)

@@ -90,6 +90,11 @@ def _meta(method: str, cfg, obs_size: int, action_size: int, dataset_path: Optio
                 dataset=dataset_path, data_sha256=data_sha256, format=FORMAT)
 
 
+def _fingerprint(data: dict) -> str:
+    """The training arrays' fingerprint (:func:`aqm_mjx.data.dataset.fingerprint`) that config.json records."""
+    return ds_io.fingerprint({k: data[k] for k in ('observations', 'actions', 'terminals') if k in data})
+
+
 def check_same_data(out: str, saved: dict, data_sha256: str, dataset_path: Optional[str]) -> None:
     """Refuse to resume the run in ``out`` (its ``config.json`` ``saved``) on other data: the
     fingerprint (:func:`aqm_mjx.data.dataset.fingerprint`) must match the one recorded; a run recorded
@@ -249,7 +254,7 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
     method = methods.get(method) if isinstance(method, str) else method
     ds = ds_io.to_device(data)  # validates, and refuses a dataset without transitions
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
-    fingerprint = ds_io.fingerprint({k: data[k] for k in ('observations', 'actions', 'terminals') if k in data})
+    fingerprint = _fingerprint(data)
     cfg_path = os.path.join(out, 'config.json')
     metrics_path = os.path.join(out, 'metrics.jsonl')
     saved_meta = None
@@ -318,16 +323,6 @@ def _strict_json(line: dict) -> str:
     return json.dumps(clean, allow_nan=False)
 
 
-def _nonfinite_leaves(state, seeds: Optional[int]) -> dict:
-    """``{path: bool}`` per floating leaf of ``state`` (``[S]`` with ``seeds``): True where all values are finite."""
-    out = {}
-    for path, x in jax.tree_util.tree_flatten_with_path(state)[0]:
-        if jnp.issubdtype(x.dtype, jnp.inexact):
-            ok = jnp.isfinite(x)
-            out[jax.tree_util.keystr(path)] = ok.all() if seeds is None else ok.reshape(seeds, -1).all(1)
-    return out
-
-
 def _diverged(cfg, step: int, what: list[str], who: str, saved: list[int], start: int = 0) -> DivergedError:
     shown = ', '.join(what[:3]) + (f' and {len(what) - 3} more' if len(what) > 3 else '')
     lrs = [(f.name, getattr(cfg, f.name)) for f in dataclasses.fields(cfg) if f.name.startswith('lr')]
@@ -379,7 +374,7 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
     """
     n = 1 if seeds is None else seeds
     pick = (lambda x, i: x) if seeds is None else (lambda x, i: x[i])
-    check = jax.jit(functools.partial(_nonfinite_leaves, seeds=seeds))
+    check = jax.jit(functools.partial(ckpt.finite_leaves, seeds=seeds))
     bar = None
     if progress and start < cfg.steps:
         from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
@@ -473,7 +468,7 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) ->
     n, cfg = len(outs), cfgs[0]
     ds = ds_io.to_device(data)
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
-    fingerprint = ds_io.fingerprint({k: data[k] for k in ('observations', 'actions', 'terminals') if k in data})
+    fingerprint = _fingerprint(data)
     done = [checkpoint_steps(o) for o in outs]
     for o, d in zip(outs, done):
         if d:
