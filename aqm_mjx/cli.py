@@ -253,12 +253,10 @@ def _overrides(a) -> list:
     return out
 
 
-def cmd_run(a):
-    """The whole pipeline: data -> train -> keypoints -> evaluate (step by step, or as one program)."""
-    _enable_compile_cache()
-    import jax  # pylint: disable=import-outside-toplevel
-
-    from aqm_mjx import envs, files, pipeline, run  # pylint: disable=import-outside-toplevel
+def run_config(a):
+    """The RunConfig of ``aqm-mjx run`` (both paths): the preset for the method, environment, seed and
+    data style, then the overrides."""
+    from aqm_mjx import envs, pipeline  # pylint: disable=import-outside-toplevel
 
     envs.parse_name(a.env)
     style = 'navigate'  # what the run collects; a --dataset says its own in its OGBench name
@@ -269,8 +267,18 @@ def cmd_run(a):
             style = dataset.infer_env(a.dataset)[1]
         except ValueError:
             style = None  # not an OGBench name: no style rule
-    cfg = pipeline.RunConfig.preset(a.preset, method=a.method, env=a.env, seed=a.seed,
-                                    style=style).with_overrides(_overrides(a))
+    return pipeline.RunConfig.preset(a.preset, method=a.method, env=a.env, seed=a.seed,
+                                     style=style).with_overrides(_overrides(a))
+
+
+def cmd_run(a):
+    """The whole pipeline: data -> train -> keypoints -> evaluate (step by step, or as one program)."""
+    _enable_compile_cache()
+    import jax  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx import envs, files, run  # pylint: disable=import-outside-toplevel
+
+    cfg = run_config(a)
     out = a.out or os.path.join('runs', a.env)
     print(f'aqm-mjx run: {a.env}, {cfg.method} {cfg.train.preset} preset ({cfg.train.steps} updates of batch '
           f'{cfg.train.batch_size}), {cfg.protocol.episodes} evaluation episodes per task, on {jax.devices()[0]}; '

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from aqm_mjx import config as cfg_lib
+from aqm_mjx import presets
 from aqm_mjx.agent.rollout import make_rollout
 from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.data import dataset as ds_io
@@ -29,30 +30,8 @@ from aqm_mjx.evaluation import protocol as proto
 from aqm_mjx.learn import fit, methods
 from aqm_mjx.mapping.build import MapConfig, build_map
 
-SECTIONS = ('map', 'agent', 'protocol')  # the sections beside train, whose fields are command-line options
-
-# Every default of a run, once. Keys are RunConfig sections; 'train' names the method's preset;
-# 'collect_episodes' is the data a run collects when no --dataset or --collect-episodes is given.
-PRESETS = {
-    # tests and notebooks: seconds on a CPU
-    'ci': dict(train='ci', map=dict(delta=0.5, max_keypoints=32, candidates=400),
-               agent=dict(kappa=0.0, switch_radius=0.6),
-               protocol=dict(episodes=2, horizon=60, envs=64, calibration_episodes=20)),
-    # minutes on a 2-core CPU; map and agent values measured at this scale (RESULTS.md sections 3-4); the
-    # AQM row on the stall rule with parallel cuts 0.6 (the paper's single cut: cut_slack=0), its patience
-    # 6 x the calibration pass's 90th percentile of the longest stall: stable across calibration keys where
-    # the 0.5% quantile was not, and the larger closure gain on four models' development episodes
-    # (benchmarks/results/diagnose_closures_dev/NOTES.md); kappas (fixed rule, paper=cal) at 0.5% false alarms
-    'cpu': dict(train='cpu', map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
-                protocol=dict(episodes=4, envs=64, calibrate='stall', false_alarm=0.005, stall_scale=6.0)),
-    # about an hour on a 2-core CPU for antmaze-large navigate with 2 seeds: 4x the data, 2.5x the updates;
-    # the paper's single cut (parallel cuts were not measured on antmaze-large: RESULTS.md section 13)
-    'cpu-long': dict(train='cpu-long', map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
-                     protocol=dict(episodes=20, envs=64, calibrate='stall', false_alarm=0.005), collect_episodes=400),
-    # the paper's sizes (Appendix 10): delta 10 (its best in Figure 10, swept 10-25), OGBench's 50 episodes
-    'paper': dict(train='paper', map=dict(delta=10.0), agent=dict(kappa=0.25, switch_radius=5.0),
-                  protocol=dict(episodes=50, envs=1024)),
-}
+SECTIONS = presets.SECTIONS  # the sections beside train, whose fields are command-line options
+PRESETS = presets.RUN  # every default of a run, once (aqm_mjx/presets.py)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,7 +40,7 @@ class RunConfig:
     to map, the agent's rules and the evaluation protocol."""
 
     method: str = 'aqm'
-    train: Any = dataclasses.field(default_factory=lambda: methods.get('aqm').preset('cpu'))
+    train: Any = dataclasses.field(default_factory=lambda: methods.get('aqm').preset(presets.DEFAULT))
     map: MapConfig = dataclasses.field(default_factory=MapConfig)
     agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
     protocol: proto.ProtocolConfig = dataclasses.field(default_factory=proto.ProtocolConfig)
@@ -77,13 +56,10 @@ class RunConfig:
                style: Optional[str] = None) -> 'RunConfig':
         """Preset ``name`` (``ci``, ``cpu``, ``cpu-long``, ``paper``) for ``method`` on ``env``, trained on data of
         ``style`` (the method's rules for it: AQM draws uniform random goals on ``explore`` data)."""
-        if name not in PRESETS:
-            raise ValueError(f'unknown run preset {name!r}; expected one of {", ".join(PRESETS)}')
-        p = PRESETS[name]
         over = dict(seed=seed) if env is None else dict(env=env, seed=seed)
-        return cls(method=method, train=methods.get(method).preset(p['train'], style=style, **over),
-                   map=MapConfig(**p['map']),
-                   agent=AgentConfig(**p['agent']), protocol=proto.ProtocolConfig(**p['protocol']))
+        return cls(method=method, train=methods.get(method).preset(presets.check(name), style=style, **over),
+                   map=MapConfig(**presets.section(name, 'map')), agent=AgentConfig(**presets.section(name, 'agent')),
+                   protocol=proto.ProtocolConfig(**presets.section(name, 'protocol')))
 
     def to_dict(self) -> dict:
         return dict(method=self.method, train=self.train.to_dict(), **{s: dataclasses.asdict(getattr(self, s))
@@ -117,11 +93,7 @@ class RunConfig:
                                             for s, p in by_section.items()})
 
 
-def collect_episodes(preset: str) -> int:
-    """Episodes a run of ``preset`` collects when the user names no number (100 unless the preset says)."""
-    if preset not in PRESETS:
-        raise ValueError(f'unknown run preset {preset!r}; expected one of {", ".join(PRESETS)}')
-    return PRESETS[preset].get('collect_episodes', 100)
+collect_episodes = presets.collect_episodes
 
 
 def stage_keys(key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

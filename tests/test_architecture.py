@@ -10,7 +10,7 @@ import aqm_mjx
 
 ROOT = pathlib.Path(aqm_mjx.__file__).parent
 # Stages in data-flow order: a module may import its own stage and earlier ones only.
-STAGES = ['_mjx', 'files', 'memory', 'config', 'interface', 'progress', 'envs', 'data', 'learn', 'mapping', 'agent', 'evaluation',
+STAGES = ['_mjx', 'files', 'memory', 'presets', 'config', 'interface', 'progress', 'envs', 'data', 'learn', 'mapping', 'agent', 'evaluation',
           'pipeline', 'run', 'compare', 'cli']
 
 

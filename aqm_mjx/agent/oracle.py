@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from aqm_mjx import presets
 from aqm_mjx.data import expert
 from aqm_mjx.envs import mazes
 from aqm_mjx.interface import Agent
@@ -73,8 +74,8 @@ def oracle_agent(env, grid=None, delta: float = 4.0, speed: float = 0.12) -> tup
 
     Returns:
         (agent, graph (its ``tau`` is 2 ``delta``, in steps), :class:`~aqm_mjx.agent.rules.AgentConfig`
-        keywords that match it: ``switch_radius`` 1.5 m in steps and ``kappa`` 0.25: its distance is
-        exact, so the slack can be small).
+        keywords that match it: ``switch_radius`` 1.5 m in steps and the paper preset's ``kappa``
+        (0.25): its distance is exact, so the slack can be small).
     """
     grid = np.asarray(env.layout if grid is None else grid)
     aux, graph = maze_graph(grid, delta=delta, speed=speed, obs_size=env.obs_size)
@@ -88,7 +89,7 @@ def oracle_agent(env, grid=None, delta: float = 4.0, speed: float = 0.12) -> tup
         return cmd / (jnp.linalg.norm(cmd) + 1e-6)
 
     agent = Agent(maze_encode, maze_dist, controller, aux)
-    return agent, graph, dict(switch_radius=1.5 / speed, kappa=0.25)
+    return agent, graph, dict(switch_radius=1.5 / speed, kappa=presets.RUN['paper']['agent']['kappa'])
 
 
 def keypoint_map_panels(maze: str, deltas, n_candidates: int = 20000, sub: int = 4, seed: int = 0):

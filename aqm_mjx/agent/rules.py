@@ -41,6 +41,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from aqm_mjx import config as cfg_lib
+from aqm_mjx import presets
 from aqm_mjx.agent import plan as planning
 from aqm_mjx.config import option
 from aqm_mjx.mapping.graph import Graph
@@ -56,10 +57,12 @@ class AgentConfig:
     """Test-time rules of the agent (units are the quasimetric's: control steps). The attachment
     radius of the start and the goal is the graph's own ``tau``."""
 
-    kappa: float = option(1.0, 'budget slack: B = (1 + kappa) d(z_i, z_j); inf disables pruning. 1, not the '
-                          "paper's small slack: at the cpu preset the learned policy walks slower than the data's "
-                          'expert that d measures (RESULTS.md, kappa sweep)')
-    switch_radius: float = option(10.0, 'a keypoint counts as reached when d(s, z) <= switch_radius (RESULTS.md)')
+    kappa: float = option(presets.default('agent', 'kappa'),
+                          'budget slack: B = (1 + kappa) d(z_i, z_j); inf disables pruning. 1 at the cpu preset, not '
+                          "the paper's small slack: the learned policy walks slower than the data's expert that d "
+                          'measures (RESULTS.md, kappa sweep)')
+    switch_radius: float = option(presets.default('agent', 'switch_radius'),
+                                  'a keypoint counts as reached when d(s, z) <= switch_radius (RESULTS.md)')
     patience: float = option(0.0, "0: the paper's budget (1 + kappa) d; > 0: the stall rule, a leg is cut after this "
                              'many consecutive steps without progress in d(s, target)')
     progress: float = option(1.0, 'stall rule: a step makes progress when d(s, target) falls this far below its best '
@@ -133,6 +136,14 @@ class AgentState:
     cuts: jax.Array  # int32 [MAX_CUTS, 2] the first MAX_CUTS pruned keypoint edges (i, j), -1 padded (plots)
     needs_replan: jax.Array  # bool: w or to_g changed this step
     kept: jax.Array  # int32 overruns not cut because their cut would have left no route (keep_route)
+
+
+def stall_kappa(kappa):
+    """``kappa``, or 1 where it is inf. Under the stall rule kappa only says whether a leg is budgeted
+    (:func:`leg_budget`), so a row moved onto the stall rule needs a finite one. Host floats or arrays."""
+    if isinstance(kappa, (int, float)):
+        return float(kappa) if math.isfinite(kappa) else 1.0
+    return jnp.where(jnp.isfinite(kappa), kappa, 1.0)
 
 
 def leg_budget(leg_d: jax.Array, kappa: jax.Array, patience: jax.Array, edge: jax.Array = True,

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx.agent.rules import LEG_EDGE
+from aqm_mjx.agent.rules import LEG_EDGE, stall_kappa
 from aqm_mjx.evaluation.protocol import CALIBRATE as RULES
 from aqm_mjx.evaluation.protocol import NO_PRUNING
 
@@ -115,7 +115,7 @@ def budget(cal: dict, rule: str, kappa, patience) -> tuple[jax.Array, jax.Array]
     if rule == 'stall':
         p = jnp.round(cal['patience'])
         ok = jnp.isfinite(p)
-        return (jnp.where(ok & ~jnp.isfinite(kappa), 1.0, kappa).astype(jnp.float32),
+        return (jnp.where(ok, stall_kappa(kappa), kappa).astype(jnp.float32),
                 jnp.where(ok, p, patience).astype(jnp.float32))
     return kappa, patience
 

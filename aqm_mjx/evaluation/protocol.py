@@ -27,6 +27,7 @@ import numpy as np
 
 from aqm_mjx import config as cfg_lib
 from aqm_mjx.agent.rollout import EpisodeInputs, episode_inputs, episode_keys
+from aqm_mjx.agent.rules import stall_kappa
 from aqm_mjx.config import option
 from aqm_mjx.envs import mazes
 
@@ -141,7 +142,7 @@ def agent_specs(kappa: float, ablations, plans: bool = True, patience: float = 0
             p = _number(a, 'patience', finite=True)
             if p == 0:
                 raise ValueError(f'ablation {a!r}: patience must be > 0 (0 is the fixed budget: kappa=X)')
-            out.append(Row(a, float(kappa) if math.isfinite(kappa) else 1.0, True, p, cut_slack=float(cut_slack)))
+            out.append(Row(a, stall_kappa(float(kappa)), True, p, cut_slack=float(cut_slack)))
         else:
             raise ValueError(f'unknown ablation {a!r}; expected {NO_PRUNING!r}, {FLAT!r}, kappa=X, stall=P, paper=X '
                              f'or {PAPER_CAL!r}')

@@ -21,6 +21,7 @@ import optax
 from flax import struct
 
 from aqm_mjx import config as cfg_lib
+from aqm_mjx import presets
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import goals
 from aqm_mjx.envs import parse_name
@@ -95,9 +96,7 @@ class AQMConfig(LoopConfig):
     def preset(cls, name: str, **overrides) -> 'AQMConfig':
         """``paper``: Appendix 10 sizes; ``cpu``: a few minutes on a 2-core CPU; ``cpu-long``: ``cpu`` for 2.5x the
         updates; ``ci``: tests."""
-        if name not in PRESETS:
-            raise ValueError(f'unknown preset {name!r}; expected one of {", ".join(PRESETS)}')
-        return cls(**{**PRESETS[name], 'preset': name, **overrides})
+        return cls(**{**presets.loop(name), **SIZES[name], 'preset': name, **overrides})
 
     @property
     def offset(self) -> float:
@@ -124,21 +123,18 @@ class AQMConfig(LoopConfig):
         return cfg_lib.from_dict(cls, d)
 
 
-PRESETS = {
-    'paper': dict(steps=1_000_000, batch_size=1024, updates_per_call=1000, log_every=5000, checkpoint_every=50_000,
-                  q_hidden=(512, 512, 512), n_components=512, component_size=1, pi_hidden=(512, 512, 512),
+# each preset's sizes beside the loop's (aqm_mjx.presets.LOOP)
+SIZES = {
+    'paper': dict(q_hidden=(512, 512, 512), n_components=512, component_size=1, pi_hidden=(512, 512, 512),
                   conditioning='goal'),
-    # cpu: 20x fewer updates than the paper, so the quasimetric learns 3x faster (at 1e-4 its map of
+    # cpu: 50x fewer updates than the paper, so the quasimetric learns 3x faster (at 1e-4 its map of
     # antmaze-medium still joined keypoints across walls after 20,000 updates; RESULTS.md)
-    'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000,
-                q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
+    'cpu': dict(q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
                 lr_quasimetric=3e-4),
-    # cpu-long: the cpu networks for 2.5x the updates (antmaze-large in about an hour here, RESULTS.md)
-    'cpu-long': dict(steps=50_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000,
-                     q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
+    # cpu-long: the cpu networks for 2.5x the updates
+    'cpu-long': dict(q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
                      lr_quasimetric=3e-4),
-    'ci': dict(steps=200, batch_size=64, updates_per_call=50, log_every=50, checkpoint_every=100,
-               q_hidden=(32, 32), n_components=32, component_size=1, pi_hidden=(32, 32)),
+    'ci': dict(q_hidden=(32, 32), n_components=32, component_size=1, pi_hidden=(32, 32)),
 }
 
 

@@ -13,6 +13,7 @@ import dataclasses
 from typing import Any, Callable, NamedTuple, Optional
 
 from aqm_mjx import config as cfg_lib
+from aqm_mjx import presets
 from aqm_mjx.envs import parse_name
 
 option = cfg_lib.option
@@ -46,15 +47,19 @@ class Learner(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class LoopConfig:
-    """Training-loop settings every method shares; a method's config extends it."""
+    """Training-loop settings every method shares (their defaults and presets: :data:`aqm_mjx.presets.LOOP`);
+    a method's config extends it."""
 
-    preset: str = option('cpu', 'the preset these values came from (recorded with every result)')
+    preset: str = option(presets.DEFAULT, 'the preset these values came from (recorded with every result)')
     env: Optional[str] = option('antmaze-medium', 'environment the data come from (e.g. sets AQM\'s push offset)')
-    steps: int = option(20_000, 'gradient updates in the run')
-    batch_size: int = option(256, 'transitions per update (paper: 1024)')
-    updates_per_call: int = option(500, 'updates per jitted call (lax.scan length); steps must be a multiple')
-    log_every: int = option(500, 'updates between metric lines (a multiple of updates_per_call)')
-    checkpoint_every: int = option(5_000, 'updates between checkpoints (a multiple of updates_per_call)')
+    steps: int = option(presets.default('loop', 'steps'), 'gradient updates in the run')
+    batch_size: int = option(presets.default('loop', 'batch_size'), 'transitions per update (paper: 1024)')
+    updates_per_call: int = option(presets.default('loop', 'updates_per_call'),
+                                   'updates per jitted call (lax.scan length); steps must be a multiple')
+    log_every: int = option(presets.default('loop', 'log_every'),
+                            'updates between metric lines (a multiple of updates_per_call)')
+    checkpoint_every: int = option(presets.default('loop', 'checkpoint_every'),
+                                   'updates between checkpoints (a multiple of updates_per_call)')
     keep: int = option(3, 'checkpoints kept')
     seed: int = option(0, 'initialisation seed of a training run started on its own')
 

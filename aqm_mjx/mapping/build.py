@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from aqm_mjx import config as cfg_lib
+from aqm_mjx import presets
 from aqm_mjx.config import option
 from aqm_mjx.interface import Agent
 from aqm_mjx.mapping import keypoints as kps
@@ -50,7 +51,8 @@ SELECTORS = {'iwe': _iwe, 'iwe-batches': _iwe_batches, 'fps': _fps, 'random': _r
 class MapConfig:
     """How the keypoint graph is built (paper section 4.3, Appendix 11.5-11.7)."""
 
-    delta: float = option(8.0, 'IWE repel radius in the quasimetric\'s units (control steps); paper: 10-25')
+    delta: float = option(presets.default('map', 'delta'),
+                          "IWE repel radius in the quasimetric's units (control steps); paper: 10-25")
     tau: float = option(0.0, 'edge and attachment radius; 0: 2 delta (the paper\'s proxy)')
     max_keypoints: int = option(256, 'static K: keypoint slots (a mask says which are used)')
     candidates: int = option(10_000, 'dataset states drawn uniformly and encoded as candidates')

@@ -21,6 +21,7 @@ import optax
 from flax import struct
 
 from aqm_mjx import config as cfg_lib
+from aqm_mjx import presets
 from aqm_mjx.data import goals
 from aqm_mjx.data.dataset import Dataset
 from aqm_mjx.interface import Agent
@@ -82,22 +83,18 @@ class BaselineConfig(LoopConfig):
         """``paper``: OGBench's sizes (batch 1024, 3 x 512, 10^6 updates); ``cpu``: AQM's cpu scale
         (batch 256, 3 x 256, 20,000 updates); ``cpu-long``: ``cpu`` for 50,000
         updates; ``ci``: tests."""
-        if name not in PRESETS:
-            raise ValueError(f'unknown preset {name!r}; expected one of {", ".join(PRESETS)}')
-        return cls(**{**PRESETS[name], **cls.PRESET_OVERRIDES.get(name, {}), 'preset': name, **overrides})
+        return cls(**{**presets.loop(name), **SIZES[name], **cls.PRESET_OVERRIDES.get(name, {}), 'preset': name,
+                      **overrides})
 
     PRESET_OVERRIDES = {}  # a method's preset-specific values (class attribute, not a field)
 
 
-PRESETS = {
-    'paper': dict(steps=1_000_000, batch_size=1024, updates_per_call=1000, log_every=5000, checkpoint_every=50_000,
-                  actor_hidden=(512, 512, 512), value_hidden=(512, 512, 512), conditioning='goal'),
-    'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000,
-                actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
-    'cpu-long': dict(steps=50_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000,
-                     actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
-    'ci': dict(steps=200, batch_size=64, updates_per_call=50, log_every=50, checkpoint_every=100,
-               actor_hidden=(32, 32), value_hidden=(32, 32)),
+# each preset's network widths beside the loop's (aqm_mjx.presets.LOOP)
+SIZES = {
+    'paper': dict(actor_hidden=(512, 512, 512), value_hidden=(512, 512, 512), conditioning='goal'),
+    'cpu': dict(actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
+    'cpu-long': dict(actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
+    'ci': dict(actor_hidden=(32, 32), value_hidden=(32, 32)),
 }
 
 

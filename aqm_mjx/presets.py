@@ -1,0 +1,95 @@
+"""Every default of a run, in one table: the training loop's size, the map, the agent's rules and
+the evaluation protocol, by preset.
+
+    presets.RUN['cpu']['agent']['kappa']   # 1.0: the cpu preset's budget slack
+    presets.default('map', 'delta')        # 8.0: what MapConfig() takes, the default preset's value
+    presets.loop('ci')                     # steps, batch size, chunking and checkpoints of the ci preset
+
+The fields that every row sets (:data:`SHARED`: the loop, the map's delta, the agent's kappa and
+switch radius) take :data:`DEFAULT`'s value here as their dataclass default
+(``AgentConfig().kappa == RUN['cpu']['agent']['kappa']``); every other field keeps a neutral default
+in its class (no extension of the paper's rule, the paper's protocol: 50 episodes, no calibration),
+which a row may change. A method's config adds only its own sizes to :func:`loop` (``learn/aqm.py``,
+``learn/baselines/base.py``). This module imports nothing from the package, so every stage reads it.
+"""
+
+from __future__ import annotations
+
+DEFAULT = 'cpu'  # the preset whose values are the configs' dataclass defaults
+
+# The training loop, once for every method: updates, batch, updates per jitted call, metric lines and
+# checkpoints.
+LOOP = {
+    # the paper's Appendix 10 (and OGBench's): 10^6 updates of batch 1024
+    'paper': dict(steps=1_000_000, batch_size=1024, updates_per_call=1000, log_every=5000, checkpoint_every=50_000),
+    # a few minutes on a 2-core CPU: 50x fewer updates, a quarter of the batch
+    'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
+    # cpu for 2.5x the updates (antmaze-large in about an hour on a 2-core CPU, RESULTS.md)
+    'cpu-long': dict(steps=50_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
+    # tests and notebooks: seconds on a CPU
+    'ci': dict(steps=200, batch_size=64, updates_per_call=50, log_every=50, checkpoint_every=100),
+}
+
+# A run's sections beside training. 'collect_episodes' is the data a run collects when no --dataset or
+# --collect-episodes is given (100 where a row does not say).
+RUN = {
+    'ci': dict(map=dict(delta=0.5, max_keypoints=32, candidates=400),
+               agent=dict(kappa=0.0, switch_radius=0.6),
+               protocol=dict(episodes=2, horizon=60, envs=64, calibration_episodes=20)),
+    # map and agent values measured at this scale (RESULTS.md sections 3-4); the AQM row on the stall rule
+    # with parallel cuts 0.6 (the paper's single cut: cut_slack=0), its patience 6 x the calibration
+    # pass's 90th percentile of the longest stall: stable across calibration keys where the 0.5% quantile
+    # was not, and the larger closure gain on four models' development episodes
+    # (benchmarks/results/diagnose_closures_dev/NOTES.md); kappas (fixed rule, paper=cal) at the protocol's
+    # false-alarm rate
+    'cpu': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
+                protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0)),
+    # antmaze-large navigate with 2 seeds in about an hour on a 2-core CPU: 4x the data, 2.5x the updates;
+    # the paper's single cut (parallel cuts were not measured on antmaze-large: RESULTS.md section 13)
+    'cpu-long': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
+                     protocol=dict(episodes=20, envs=64, calibrate='stall'),
+                     collect_episodes=400),
+    # the paper's sizes (Appendix 10): delta 10 (its best in Figure 10, swept 10-25), OGBench's 50 episodes
+    'paper': dict(map=dict(delta=10.0), agent=dict(kappa=0.25, switch_radius=5.0),
+                  protocol=dict(episodes=50, envs=1024)),
+}
+SECTIONS = ('map', 'agent', 'protocol')
+SHARED = dict(map=('delta',), agent=('kappa', 'switch_radius'))  # set by every row; the classes' defaults
+
+
+def names() -> list[str]:
+    return list(RUN)
+
+
+def check(name: str) -> str:
+    """``name`` if it is a preset, else a ValueError that lists them."""
+    if name not in RUN:
+        raise ValueError(f'unknown run preset {name!r}; expected one of {", ".join(RUN)}')
+    return name
+
+
+def loop(name: str) -> dict:
+    """The loop fields of preset ``name`` (a copy)."""
+    if name not in LOOP:
+        raise ValueError(f'unknown preset {name!r}; expected one of {", ".join(LOOP)}')
+    return dict(LOOP[name])
+
+
+def section(name: str, part: str) -> dict:
+    """Fields that preset ``name`` sets in ``part`` (``'map'``, ``'agent'``, ``'protocol'``; a copy)."""
+    return dict(RUN[check(name)].get(part, {}))
+
+
+def default(part: str, field: str):
+    """The dataclass default of ``part.field``: :data:`DEFAULT`'s value (``part`` is a run section,
+    or ``'loop'``)."""
+    if part == 'loop':
+        return LOOP[DEFAULT][field]
+    if field not in SHARED.get(part, ()):
+        raise ValueError(f'{part}.{field} is not set by every preset; its class holds a neutral default')
+    return RUN[DEFAULT][part][field]
+
+
+def collect_episodes(name: str) -> int:
+    """Episodes a run of preset ``name`` collects when the user names no number."""
+    return RUN[check(name)].get('collect_episodes', 100)
