@@ -27,10 +27,9 @@ from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.interface import Agent
 from aqm_mjx.learn import checkpoint as ckpt
 from aqm_mjx.learn import methods
+from aqm_mjx.learn.folder import (check_against_checkpoint, check_resumable, check_resume_request,  # noqa: F401
+                                  check_same_data, checkpoint_steps, fingerprint, meta_of, read_meta, trim_metrics)
 from aqm_mjx.learn.learner import Learner
-
-FORMAT = 'aqm_mjx.train/1'
-
 
 # ------------------------------------------------------------------------------------ pure parts
 def chunk_step(update: Callable, length: int) -> Callable:
@@ -84,148 +83,6 @@ class Trained(NamedTuple):
         return self.learner.agent(self.params)
 
 
-def _meta(method: str, cfg, obs_size: int, action_size: int, dataset_path: Optional[str],
-          data_sha256: Optional[str] = None) -> dict:
-    return dict(method=method, config=cfg.to_dict(), obs_size=int(obs_size), action_size=int(action_size),
-                dataset=dataset_path, data_sha256=data_sha256, format=FORMAT)
-
-
-def _fingerprint(data: dict) -> str:
-    """The training arrays' fingerprint (:func:`aqm_mjx.data.dataset.fingerprint`) that config.json records."""
-    return ds_io.fingerprint({k: data[k] for k in ('observations', 'actions', 'terminals') if k in data})
-
-
-def check_same_data(out: str, saved: dict, data_sha256: str, dataset_path: Optional[str]) -> None:
-    """Refuse to resume the run in ``out`` (its ``config.json`` ``saved``) on other data: the
-    fingerprint (:func:`aqm_mjx.data.dataset.fingerprint`) must match the one recorded; a run recorded
-    before fingerprints must be given the same file."""
-    given = dataset_path or 'the data given'
-    if saved.get('data_sha256'):
-        if saved['data_sha256'] != data_sha256:
-            raise ValueError(f'{out} was trained on other data ({saved.get("dataset")}, sha256 '
-                             f'{saved["data_sha256"][:16]}...) than {given} (sha256 {data_sha256[:16]}...): resume '
-                             'it with its own dataset, or start a new --out')
-    elif saved.get('dataset') and dataset_path and os.path.realpath(saved['dataset']) != os.path.realpath(dataset_path):
-        raise ValueError(f'{out} was trained on {saved["dataset"]} (its config.json records no fingerprint to '
-                         f'compare); resume it with that file, not {dataset_path}')
-
-
-def check_resume_request(out: str, method: Optional[str], cfg) -> None:
-    """Refuse a ``--resume`` whose options (method ``method``, config ``cfg`` built from the options
-    given; None: not given) differ from the saved run's, naming every field; a larger ``steps``
-    extends the run and is not a difference."""
-    saved_method, saved_cfg, meta = read_meta(out)
-    diff = []
-    if method is not None and method != saved_method.name:
-        diff.append(f'method: {saved_method.name!r} vs {method!r}')
-    elif cfg is not None:
-        a, b = saved_cfg.to_dict(), cfg.to_dict()
-        diff += [f'{k}: {a.get(k)!r} vs {b.get(k)!r}' for k in sorted(set(a) | set(b))
-                 if k != 'steps' and a.get(k) != b.get(k)]
-    if diff:
-        raise ValueError(f'--resume continues {out} with its saved settings; these options differ from them '
-                         f'(saved vs given): {"; ".join(diff)}. Drop them to continue (--steps may extend it), '
-                         'or start a new --out')
-
-
-def read_meta(out: str) -> tuple[methods.Method, Any, dict]:
-    """``(method entry, config, meta)`` of a run folder's ``config.json``; a damaged or edited file
-    is an error that names the file and the field."""
-    path = os.path.join(out, 'config.json')
-    meta = files.read_json(path)
-    return _parse_meta(meta, path)
-
-
-def _parse_meta(meta, where: str) -> tuple[methods.Method, Any, dict]:
-    if not isinstance(meta, dict):
-        raise ValueError(f'{where}: expected a JSON object, not {type(meta).__name__}')
-    missing = [k for k in ('config', 'obs_size', 'action_size') if k not in meta]
-    if missing:
-        raise ValueError(f'{where}: no {", ".join(map(repr, missing))} (is this a run folder written by aqm-mjx '
-                         'train?)')
-    for k in ('obs_size', 'action_size'):
-        if isinstance(meta[k], bool) or not isinstance(meta[k], int) or meta[k] < 1:
-            raise ValueError(f'{where}: {k} must be an integer >= 1; got {meta[k]!r}')
-    try:
-        method = methods.get(meta.get('method', 'aqm'))
-        return method, method.from_dict(meta['config']), meta
-    except (TypeError, ValueError) as e:
-        raise ValueError(f'{where}: {e}') from None
-
-
-def meta_differences(a: dict, b: dict, ignore: tuple = ('steps',)) -> list[str]:
-    """Fields in which two run metas (``config.json`` and a checkpoint's) differ, as
-    ``'field: A vs B'`` (the config's fields flattened beside method and shapes)."""
-    def flat(m):
-        cfg = _parse_meta(m, 'meta')[1].to_dict()
-        return {'method': m.get('method', 'aqm'), 'obs_size': m['obs_size'], 'action_size': m['action_size'], **cfg}
-
-    fa, fb = flat(a), flat(b)
-    return [f'{k}: {fa.get(k)!r} vs {fb.get(k)!r}' for k in sorted(set(fa) | set(fb))
-            if k not in ignore and fa.get(k) != fb.get(k)]
-
-
-def check_resumable(out: str, method: str, cfg, obs_size: int, action_size: int) -> None:
-    """Refuse to continue the run in ``out`` under another config: every differing field is named.
-    A larger ``steps`` extends the run; a smaller one than its newest checkpoint is refused. Does
-    nothing when ``out`` holds no checkpoint."""
-    done = checkpoint_steps(out)
-    if not done:
-        return
-    _, _, meta = read_meta(out)
-    diff = meta_differences(meta, _meta(method, cfg, obs_size, action_size, None))
-    if diff:
-        raise ValueError(f'{out} holds a run with other settings (saved vs asked): {"; ".join(diff)}. Choose '
-                         f'another --out, or drop the changes to continue it')
-    if cfg.steps < max(done):
-        raise ValueError(f'{out} is trained to step {max(done)}, past the {cfg.steps} asked for; ask for '
-                         f'at least {max(done)} updates (train --steps, run --set train.steps) or choose another --out')
-
-
-def check_against_checkpoint(out: str, meta: dict, saver: ckpt.Checkpointer, step: Optional[int] = None) -> None:
-    """Refuse a ``config.json`` that disagrees with the config saved inside checkpoint ``step``
-    (default: the newest), naming every differing field. A checkpoint whose config cannot be read
-    is left to :meth:`~aqm_mjx.learn.checkpoint.Checkpointer.restore` (it falls back)."""
-    steps = saver.steps() if step is None else [step]
-    if not steps:
-        return
-    try:
-        saved = saver.saved_meta(steps[-1])
-    except Exception:  # pylint: disable=broad-except  (a torn checkpoint: restore decides)
-        return
-    diff = meta_differences(meta, saved)
-    if diff:
-        raise ValueError(f'{out}/config.json disagrees with the config saved in checkpoint {steps[-1]} '
-                         f'(config.json vs checkpoint): {"; ".join(diff)}. Was config.json edited? The '
-                         'checkpoint\'s copy is what the parameters were trained with')
-
-
-def _trim_metrics(path: str, step: int) -> None:
-    """Keep the metric lines up to ``step`` (a resumed run re-logs what came after its checkpoint)."""
-    if not os.path.exists(path):
-        return
-    def keep(line: str) -> bool:
-        try:
-            return json.loads(line).get('step', 0) <= step
-        except ValueError:  # a line torn by a kill during its write
-            return False
-
-    with open(path) as f:
-        lines = [ln for ln in f if ln.strip() and keep(ln)]
-    files.write_text(path, ''.join(lines))
-
-
-def checkpoint_steps(out: str) -> list[int]:
-    """Steps of the finished checkpoints in a run folder (empty when there is none)."""
-    if not os.path.isdir(os.path.join(out, 'checkpoints')):
-        return []
-    saver = ckpt.Checkpointer(out, keep=None, create=False)
-    try:
-        return saver.steps()
-    finally:
-        saver.close()
-
-
 def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, resume: Union[bool, str] = False,
           steps: Optional[int] = None, dataset_path: Optional[str] = None, progress: bool = True, log=print,
           key: Optional[jax.Array] = None) -> Trained:
@@ -254,7 +111,7 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
     method = methods.get(method) if isinstance(method, str) else method
     ds = ds_io.to_device(data)  # validates, and refuses a dataset without transitions
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
-    fingerprint = _fingerprint(data)
+    data_sha = fingerprint(data)
     cfg_path = os.path.join(out, 'config.json')
     metrics_path = os.path.join(out, 'metrics.jsonl')
     saved_meta = None
@@ -282,7 +139,7 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
         if (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
             raise ValueError(f'{out} was trained on {meta["obs_size"]}-d observations and {meta["action_size"]}-d '
                              f'actions; this dataset has {obs_size} and {action_size}')
-        check_same_data(out, meta, fingerprint, dataset_path)
+        check_same_data(out, meta, data_sha, dataset_path)
         saved_meta = meta
     elif done:
         raise FileExistsError(f'{out} already holds checkpoints; pass --resume to continue it or choose a new --out')
@@ -292,8 +149,8 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
         cfg = dataclasses.replace(cfg, steps=int(steps))
     learner = method.make(cfg, obs_size, action_size)
     if saved_meta is not None:  # a resumed run keeps the record of the data it was trained on
-        dataset_path, fingerprint = saved_meta.get('dataset') or dataset_path, saved_meta.get('data_sha256') or fingerprint
-    meta = _meta(method.name, cfg, obs_size, action_size, dataset_path, fingerprint)
+        dataset_path, data_sha = saved_meta.get('dataset') or dataset_path, saved_meta.get('data_sha256') or data_sha
+    meta = meta_of(method.name, cfg, obs_size, action_size, dataset_path, data_sha)
     state = learner.init(jax.random.PRNGKey(cfg.seed) if key is None else key)
     saver = None
     if resume:
@@ -305,7 +162,7 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
         raise ValueError(f'checkpoint step {start} is not a multiple of updates_per_call {cfg.updates_per_call}')
     _check_room([out], state, cfg, start)  # before anything is written to the folder
     saver = saver or ckpt.Checkpointer(out, keep=cfg.keep)
-    _trim_metrics(metrics_path, start)  # a fresh start drops what a killed run left
+    trim_metrics(metrics_path, start)  # a fresh start drops what a killed run left
     files.write_json(cfg_path, meta)
     chunk = jax.jit(chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
     state, step = _host_loop(chunk, state, ds, cfg, start, [out], [saver], [meta], [set()], None,
@@ -468,12 +325,12 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) ->
     n, cfg = len(outs), cfgs[0]
     ds = ds_io.to_device(data)
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
-    fingerprint = _fingerprint(data)
+    data_sha = fingerprint(data)
     done = [checkpoint_steps(o) for o in outs]
     for o, d in zip(outs, done):
         if d:
             _, saved, meta = read_meta(o)
-            check_same_data(o, meta, fingerprint, dataset_path)
+            check_same_data(o, meta, data_sha, dataset_path)
             if meta.get('method') != method.name or (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
                 raise ValueError(f'{o} holds a {meta.get("method")} run on {meta["obs_size"]}-d observations; '
                                  f'this is {method.name} on {obs_size}-d: choose another folder')
@@ -490,10 +347,10 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) ->
     start, states = _restore_common(savers, states, done, log)
     if start:
         log(f'{method.name}: resuming {n} seed(s) at step {start}')
-    metas = [_meta(method.name, c, obs_size, action_size, dataset_path, fingerprint) for c in cfgs]
+    metas = [meta_of(method.name, c, obs_size, action_size, dataset_path, data_sha) for c in cfgs]
     for o, m in zip(outs, metas):
         files.write_json(os.path.join(o, 'config.json'), m, makedirs=True)
-        _trim_metrics(os.path.join(o, 'metrics.jsonl'), start)
+        trim_metrics(os.path.join(o, 'metrics.jsonl'), start)
     state = jax.tree.map(lambda *x: jnp.stack(x), *states)
     chunk = jax.jit(jax.vmap(chunk_step(learner.update, cfg.updates_per_call), in_axes=(0, None)),
                     donate_argnums=0)
