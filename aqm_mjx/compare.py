@@ -30,7 +30,7 @@ from typing import Optional, Sequence
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx import envs, files
+from aqm_mjx import envs, files, presets
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.evaluation import plots, stats
 from aqm_mjx.evaluation.protocol import plan_episodes
@@ -330,7 +330,7 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     return result
 
 
-def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, preset: str = 'cpu',
+def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, preset: str = presets.DEFAULT,
             dataset: Optional[str] = None, style: str = 'navigate', collect_episodes: int = 100,
             collect_batch: int = 55, overrides: Sequence[str] = (), shift: str = 'base', first_seed: int = 0,
             eval_seed: int = 0, log=print) -> dict:

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs, files
+from aqm_mjx import envs, files, presets
 from aqm_mjx.data import collect
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
@@ -79,8 +79,8 @@ def variants_for(maze: str, shift: str) -> dict:
 
 def preset_for_name(train_preset: str) -> str:
     """The run preset whose map, agent and protocol defaults match a training preset (runs trained
-    before the presets were renamed say 'tiny' for 'ci'; an unknown name gets 'cpu')."""
-    return train_preset if train_preset in PRESETS else 'ci' if train_preset == 'tiny' else 'cpu'
+    before the presets were renamed say 'tiny' for 'ci'; an unknown name gets the default preset)."""
+    return train_preset if train_preset in PRESETS else 'ci' if train_preset == 'tiny' else presets.DEFAULT
 
 
 def preset_for(trained: fit.Trained) -> str:

@@ -97,9 +97,9 @@ def test_cpu_long_preset_scales_the_cpu_run_for_every_method():
         pipeline.collect_episodes('cpu-longer')
     # the CLI takes the preset's data size unless --collect-episodes says otherwise
     parser = cli.build_parser()
-    assert cli._collect_episodes(parser.parse_args(['run', '--preset', 'cpu-long'])) == 400
-    assert cli._collect_episodes(parser.parse_args(['compare', '--preset', 'cpu-long', '--collect-episodes', '7'])) == 7
-    assert cli._collect_episodes(parser.parse_args(['run'])) == 100
+    assert cli.collect_episodes_of(parser.parse_args(['run', '--preset', 'cpu-long'])) == 400
+    assert cli.collect_episodes_of(parser.parse_args(['compare', '--preset', 'cpu-long', '--collect-episodes', '7'])) == 7
+    assert cli.collect_episodes_of(parser.parse_args(['run'])) == 100
 
 
 _CACHED_PROGRAM = '''
@@ -107,7 +107,7 @@ import sys
 if sys.argv[1] == 'cli':
     from aqm_mjx import cli
     cli.build_parser()          # imports the configs, and jax, as every command does
-    cli._enable_compile_cache()
+    cli.enable_compile_cache()
 import jax, jax.numpy as jnp
 jax.config.update('jax_compilation_cache_dir', sys.argv[2])
 jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.0)

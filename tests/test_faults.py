@@ -624,8 +624,6 @@ def test_batches_that_cannot_fit_are_refused_before_compiling(tmp_path, grid_fil
                '--out', str(tmp_path / 'ev')], 'lower --episodes'),
              (['evaluate', '--checkpoint', run_dir, '--dataset', grid_file, '--envs', '1000000000',
                '--out', str(tmp_path / 'ev')], 'lower --envs'),
-             (['rollouts', '--env', 'antmaze-medium', '--envs', '100000000', '--out', str(tmp_path / 'ro')],
-              'lower --envs'),
              (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--set',
                'batch_size=100000000', '--out', str(tmp_path / 'tr')], 'lower --set batch_size')]
     for argv, option in cases:
@@ -708,8 +706,6 @@ def test_bad_arguments_are_named_before_any_work(tmp_path, grid_data, grid_file,
               r'--dataset .*missing.npz: no such file'),
              (['render', '--env', 'pointmaze-medium', '--deltas', '0', '--out', str(tmp_path / 'r.png')],
               r'--deltas must be finite numbers > 0; got \[0.0\]'),
-             (['rollouts', '--env', 'pointmaze-medium', '--envs', '0', '--out', str(tmp_path / 'ro')],
-              r'--envs must be >= 1; got 0'),
              (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--out', str(tmp_path / 'q'),
                '--set', 'q_hidden=0,-3'], r'AQMConfig.q_hidden must be one or more layer widths >= 1'),
              (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--out', str(tmp_path / 'q'),

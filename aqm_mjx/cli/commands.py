@@ -1,0 +1,259 @@
+"""What each ``aqm-mjx`` subcommand does with its parsed options: build the config, call the package
+(:mod:`aqm_mjx.run`, :mod:`aqm_mjx.compare`, :mod:`aqm_mjx.learn.fit`, :mod:`aqm_mjx.data.collect`) and
+print where the results went. Nothing here computes: the commands only connect options to stages.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+
+from aqm_mjx import presets
+
+
+def enable_compile_cache():
+    import jax  # pylint: disable=import-outside-toplevel
+
+    jax.config.update('jax_compilation_cache_dir', os.path.expanduser('~/.cache/aqm_mjx/jax'))
+    jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
+
+
+def cmd_envs(a):
+    from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
+
+    for name in envs.ENV_NAMES:
+        agent, maze = envs.parse_name(name)
+        tasks = envs.mazes.tasks(maze)
+        print(f'{name:<22} grid {envs.mazes.layout(maze).shape}  tasks: '
+              + ', '.join(f'{t.init_ij}->{t.goal_ij}' for t in tasks))
+    return 0
+
+
+def cmd_render(a):
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.envs.render import render_maze, render_panels  # pylint: disable=import-outside-toplevel
+
+    _, maze = envs.parse_name(a.env)
+    bad = [d for d in a.deltas or () if not (d > 0 and d < float('inf'))]
+    if bad:
+        raise ValueError(f'--deltas must be finite numbers > 0; got {bad}')
+    if a.deltas:
+        from aqm_mjx.agent.oracle import keypoint_map_panels  # pylint: disable=import-outside-toplevel
+
+        grid, panels = keypoint_map_panels(maze, a.deltas)
+        render_panels(grid, panels, a.out)
+        for p in panels:
+            print(p['title'])
+        print(f'wrote {a.out}')
+        return 0
+    tasks = envs.mazes.tasks(maze)
+    render_maze(envs.mazes.layout(maze), a.out, start_xy=np.array([t.init_xy for t in tasks]),
+                goal_xy=np.array([t.goal_xy for t in tasks]), title=f'{a.env}: evaluation tasks')
+    print(f'wrote {a.out}')
+    return 0
+
+
+def cmd_collect(a):
+    """Collect an OGBench-format dataset in MJX with the scripted expert."""
+    enable_compile_cache()
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
+
+    cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
+                                batch=a.batch, seed=a.seed, layout=a.layout).resolved()
+    collect.check_output(a.out, a.overwrite, cfg)  # name, folder and free space before minutes of collection
+    collect.check_memory(cfg)
+    import jax  # pylint: disable=import-outside-toplevel
+
+    print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
+          f'{cfg.env} ({cfg.layout} layout), noise {cfg.noise}, {cfg.batch} at a time on {jax.devices()[0]}')
+    physics = {k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations)) if v is not None}
+    res = collect.collect(cfg, physics=physics)
+    train, val = collect.write(res, a.out, overwrite=a.overwrite)
+    # the data are complete from here on: a picture or summary the disk has no room for is a warning
+    png, summary = a.out[:-4] + '.png', a.out[:-4] + '.json'
+    try:
+        collect.plot(res, png)
+    except OSError as e:
+        if os.path.exists(png):
+            os.remove(png)
+        print(f'warning: {png} could not be written ({e.strerror or e}); the data in {train} are complete',
+              file=sys.stderr)
+        png = None
+    res.stats.update(train=train, val=val if cfg.val_episodes else None, picture=png)
+    try:
+        files.write_json(summary, res.stats)
+    except files.OutputError as e:
+        print(f'warning: {e}; the data in {train} are complete', file=sys.stderr)
+    print(json.dumps(res.stats, indent=1))
+    return 0
+
+
+def cmd_methods(a):
+    del a
+    from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
+
+    for m in methods.METHODS.values():
+        print(f'{m.name:<10} {m.summary}')
+    return 0
+
+
+def cmd_train(a):
+    """Train a method on an OGBench-format dataset."""
+    enable_compile_cache()
+    from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.data import dataset  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import fit, methods  # pylint: disable=import-outside-toplevel
+
+    method = methods.get(a.method or 'aqm')
+    try:
+        inferred, style = dataset.infer_env(a.dataset)
+    except ValueError:
+        if a.env is None and not a.resume:
+            raise
+        inferred, style = None, None
+    env_name = a.env or inferred
+    if a.env and inferred:
+        dataset.check_env_name(a.dataset, a.env)
+    cfg = None
+    obs_size = action_size = None
+    sets = [s[len('train.'):] if s.startswith('train.') else s for s in a.set or []]
+    if not a.resume:
+        env = envs.make(env_name)
+        obs_size, action_size = env.obs_size, env.action_size
+        cfg = method.preset(a.preset or presets.DEFAULT, style=style, env=env_name, seed=a.seed or 0).with_overrides(sets)
+        if cfg.env != env_name:
+            raise ValueError(f'--set env={cfg.env}: the environment is {env_name} (from --env or the dataset\'s '
+                             'name), which sets the observation size; give --env instead')
+        if a.steps is not None:
+            cfg = dataclasses.replace(cfg, steps=int(a.steps))
+        memory.check(memory.training_bytes(cfg, obs_size, action_size), f'an update of batch {cfg.batch_size:,}',
+                     '--set batch_size')
+    elif a.method or a.preset or a.seed is not None or sets or a.env:
+        # every option given with --resume is checked against the saved run (the same values pass)
+        if not os.path.exists(os.path.join(a.out, 'config.json')):
+            raise FileNotFoundError(f'{a.out} holds no run to resume (no config.json); start a new run without --resume')
+        _, saved, _ = fit.read_meta(a.out)
+        fit.check_resume_request(a.out, a.method, None)  # another method first: its fields are not comparable
+        base = method.preset(a.preset, style=style, env=saved.env, seed=saved.seed) if a.preset else saved
+        changes = ([f'env={a.env}'] if a.env else []) + ([f'seed={a.seed}'] if a.seed is not None else []) + sets
+        fit.check_resume_request(a.out, None, base.with_overrides(changes))
+    data = dataset.read_ogbench(a.dataset, obs_size=obs_size, action_size=action_size, add_info=False)
+    print(f'dataset {a.dataset}: {len(data["terminals"])} states, {int(data["terminals"].sum())} trajectories')
+    if cfg is not None:
+        print(f'{method.name}, preset {cfg.preset}: {cfg.steps} updates of batch {cfg.batch_size}')
+    fit.train(method, cfg, data, a.out, resume=a.resume, steps=a.steps, dataset_path=os.path.abspath(a.dataset))
+    print(f'wrote {a.out} (config.json, metrics.jsonl, checkpoints/)')
+    return 0
+
+
+def overrides_of(a) -> list:
+    """``--set`` pairs, then the section options the user gave, as ``section.field=text``."""
+    out = list(a.set or [])
+    for k, v in vars(a).items():
+        if '.' in k and v is not None:
+            out.append(f'{k}={",".join(v) if isinstance(v, list) else v}')
+    return out
+
+
+def run_config(a):
+    """The RunConfig of ``aqm-mjx run`` (both paths): the preset for the method, environment, seed and
+    data style, then the overrides."""
+    from aqm_mjx import envs, pipeline  # pylint: disable=import-outside-toplevel
+
+    envs.parse_name(a.env)
+    style = 'navigate'  # what the run collects; a --dataset says its own in its OGBench name
+    if a.dataset:
+        from aqm_mjx.data import dataset  # pylint: disable=import-outside-toplevel
+
+        try:
+            style = dataset.infer_env(a.dataset)[1]
+        except ValueError:
+            style = None  # not an OGBench name: no style rule
+    return pipeline.RunConfig.preset(a.preset, method=a.method, env=a.env, seed=a.seed,
+                                     style=style).with_overrides(overrides_of(a))
+
+
+def cmd_run(a):
+    """The whole pipeline: data -> train -> keypoints -> evaluate (step by step, or as one program)."""
+    enable_compile_cache()
+    import jax  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx import envs, files, run  # pylint: disable=import-outside-toplevel
+
+    cfg = run_config(a)
+    out = a.out or os.path.join('runs', a.env)
+    print(f'aqm-mjx run: {a.env}, {cfg.method} {cfg.train.preset} preset ({cfg.train.steps} updates of batch '
+          f'{cfg.train.batch_size}), {cfg.protocol.episodes} evaluation episodes per task, on {jax.devices()[0]}; '
+          f'output in {out}')
+    if not a.one_program:
+        run.run_stepwise(cfg, out, dataset=a.dataset, collect_episodes=collect_episodes_of(a),
+                         collect_batch=a.collect_batch, shift=a.shift)
+        return 0
+    if a.shift != 'base':
+        raise ValueError('--one-program evaluates the base layout; drop --shift')
+    with files.run_lock(out):  # one writer per run folder
+        path = run.data_stage(a.env, out, a.dataset, collect_episodes_of(a), a.collect_batch)
+        data = run.read_data(path, envs.make(a.env))
+        res = run.run_one_program(cfg, data, a.seeds)
+        files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
+    print(f'wrote {out}/one_program.json')
+    return 0
+
+
+def collect_episodes_of(a) -> int:
+    """--collect-episodes, or the preset's data size when it is not given."""
+    from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
+
+    return pipeline.collect_episodes(a.preset) if a.collect_episodes is None else a.collect_episodes
+
+
+def cmd_evaluate(a):
+    """OGBench's protocol for a trained model, with ablations and test-time shifts in one batch."""
+    if a.distributed:
+        import jax  # pylint: disable=import-outside-toplevel
+
+        jax.distributed.initialize()  # before any other JAX call: every host runs this same command
+    enable_compile_cache()
+    from aqm_mjx import pipeline, run  # pylint: disable=import-outside-toplevel
+
+    overrides = overrides_of(a)
+    if any(o.startswith('train.') for o in overrides):
+        raise ValueError('evaluate: the train settings are the checkpoint\'s; --set takes map., agent. and '
+                         'protocol. fields here')
+    cfg = None if a.preset is None else pipeline.RunConfig.preset(a.preset)
+    if len(a.checkpoint) == 1:
+        run.evaluate_checkpoint(a.checkpoint[0], cfg, dataset=a.dataset, shift=a.shift, out=a.out, seed=a.seed,
+                                overrides=overrides)
+    else:
+        out = a.out or os.path.join(os.path.dirname(os.path.normpath(a.checkpoint[0])), 'comparison')
+        run.evaluate_checkpoints(a.checkpoint, out, cfg, dataset=a.dataset, shift=a.shift, seed=a.seed,
+                                 overrides=overrides)
+    return 0
+
+
+def cmd_compare(a):
+    """Several methods, seeds vmapped, on the same data and episodes: a table and a bar chart."""
+    enable_compile_cache()
+    from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
+
+    out = a.out or os.path.join('runs', f'compare-{a.env}-{a.style}')
+    compare.compare(a.env, a.methods, a.seeds, out, preset=a.preset, dataset=a.dataset, style=a.style,
+                    collect_episodes=collect_episodes_of(a), collect_batch=a.collect_batch,
+                    overrides=(a.set or []) + ([f'protocol.backend={a.backend}'] if a.backend else [])
+                    + ([f'protocol.workers={a.workers}'] if a.workers is not None else []),
+                    shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed)
+    return 0
+
+
+def cmd_merge(a):
+    """Finished comparisons on the same data and episodes as one table."""
+    from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
+
+    compare.merge(a.folders, a.out)
+    return 0
