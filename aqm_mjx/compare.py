@@ -36,7 +36,7 @@ from aqm_mjx.evaluation import plots, stats
 from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit, methods
 from aqm_mjx.pipeline import RunConfig, stage_keys
-from aqm_mjx import run
+from aqm_mjx import assess, run
 
 DEFAULT_METHODS = ('aqm', 'gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw')
 
@@ -139,7 +139,7 @@ def aggregate(per_method: dict[str, dict], seeds: Sequence[int]) -> dict:
     rows = {}
     for m, res in per_method.items():
         episodes, tasks = int(res['episodes']), list(res['tasks'])
-        labels = run.checkpoint_labels([f'seed_{s}' for s in seeds], [m] * len(seeds))  # as evaluate names them
+        labels = assess.checkpoint_labels([f'seed_{s}' for s in seeds], [m] * len(seeds))  # as evaluate names them
         agents = []
         for key in res['summary']:
             label, agent = key.split('/', 1)
@@ -355,7 +355,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
     names = list(method_names)
     cfgs = method_configs(env_name, names, preset, overrides, style=style)
     env = envs.make(env_name)
-    variants = run.variants_for(env.maze, shift)
+    variants = assess.variants_for(env.maze, shift)
     for c in cfgs.values():
         plan_episodes(env, c.protocol, c.agent.kappa, variants)  # bad task ids fail before any work
     seed_ids = [first_seed + i for i in range(seeds)]
@@ -367,7 +367,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         files.write_json(cpath, dict(spec, methods=all_names, **kept), makedirs=True)
 
         path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style)
-        data = run.read_data(path, env)
+        data = assess.read_data(path, env)
         digest = ds_io.fingerprint(data)
         if recorded is not None and recorded != digest:
             raise ValueError(f'{path}: the data changed since this comparison began (sha256 {digest[:16]}... now, '
@@ -391,7 +391,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
             if res is not None:
                 log(f'{n}: evaluated already ({ev}/results.json)')
             else:
-                run.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
+                assess.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
                 res = files.read_json(os.path.join(ev, 'results.json'))  # as a re-run reads it (JSON types)
             per_method[n] = res
             result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method},

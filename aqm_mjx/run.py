@@ -1,14 +1,12 @@
 """The host side of a run: the data stage, then training with checkpoints, the map and the
-evaluation, step by step with progress and resume (:func:`run_stepwise`); the same stages as one
-jitted program (:func:`run_one_program`); and the evaluation of a saved checkpoint
-(:func:`evaluate_checkpoint`). The trained state goes from training to the map and the
-evaluation in memory; keys come from :func:`aqm_mjx.pipeline.stage_keys` on every path.
+evaluation, step by step with progress and resume (:func:`run_stepwise`), and the same stages as one
+jitted program (:func:`run_one_program`). The trained state goes from training to the map and the
+evaluation (:func:`aqm_mjx.assess.map_and_evaluate`, as for a saved checkpoint) in memory; keys come
+from :func:`aqm_mjx.pipeline.stage_keys` on every path.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import os
 import time
 from typing import Optional
@@ -17,16 +15,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs, files, presets
+from aqm_mjx import envs, files
+from aqm_mjx.assess import map_and_evaluate, read_data, variants_for
 from aqm_mjx.data import collect
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
-from aqm_mjx.evaluation import plots, report
-from aqm_mjx.evaluation.protocol import needs_calibration, plan_episodes
-from aqm_mjx.evaluation.evaluate import calibration_pass, device_mesh, evaluate, make_program, put_global
+from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit
-from aqm_mjx.mapping.build import trimmed_map
-from aqm_mjx.pipeline import PRESETS, RunConfig, make_run, stage_keys, summary
+from aqm_mjx.evaluation.evaluate import put_global
+from aqm_mjx.pipeline import RunConfig, make_run, stage_keys, summary
 
 
 # ------------------------------------------------------------------------------------------- data
@@ -53,248 +50,6 @@ def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, b
     collect.write(res, path)
     collect.plot(res, path[:-4] + '.png')
     return path
-
-
-def read_data(path: str, env) -> dict:
-    """An OGBench file's arrays, checked against ``env``'s observation and action sizes (and its
-    name, when the file's OGBench name says a maze)."""
-    ds_io.check_env_name(path, env.name)
-    return ds_io.read_ogbench(path, obs_size=env.obs_size, action_size=env.action_size, add_info=False)
-
-
-def variants_for(maze: str, shift: str) -> dict:
-    """``{name: grid}`` of ``--shift``: 'base', 'all' (the maze's suite), 'closures' (the training layout
-    and the suite's closed corridors), one variant, or several joined by commas ('base,close-3-3')."""
-    if shift == 'all':
-        return shifts.suite(maze)
-    if shift == 'closures':
-        return {k: g for k, g in shifts.suite(maze).items() if k == 'base' or k.startswith('close')}
-    names = [n.strip() for n in shift.split(',')]
-    repeated = sorted({n for n in names if names.count(n) > 1})
-    if '' in names or repeated:
-        raise ValueError(f'--shift {shift!r}: ' + (f'layout(s) {repeated} named twice' if repeated else 'an empty name')
-                         + "; give layout names joined by commas, e.g. 'base,close-3-3'")
-    return {n: shifts.variant(maze, n) for n in names}
-
-
-def preset_for_name(train_preset: str) -> str:
-    """The run preset whose map, agent and protocol defaults match a training preset (runs trained
-    before the presets were renamed say 'tiny' for 'ci'; an unknown name gets the default preset)."""
-    return train_preset if train_preset in PRESETS else 'ci' if train_preset == 'tiny' else presets.DEFAULT
-
-
-def preset_for(trained: fit.Trained) -> str:
-    """:func:`preset_for_name` of a trained method's training preset."""
-    return preset_for_name(trained.config.preset)
-
-
-# ------------------------------------------------------------------------------ map + evaluation
-# room an evaluation's outputs need, reserved before its episodes (results.json and three pictures are
-# about 0.1 MiB; 20x that): a disk too full for them is refused up front, not after every episode ran
-EVAL_OUTPUT_BYTES = 2 * 2 ** 20
-
-def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig, variants: dict):
-    """The compiled evaluation chunk for ``trained`` from ``programs`` (filled on first use), shared by
-    checkpoints whose method and configs agree up to the seed, and by the calibration pass and the
-    evaluation: parameters, kappa, patience, layouts and episodes are arguments, not constants, so
-    seeds of one method compile once, whatever their calibrated budgets."""
-    if programs is None:
-        return None
-    run_cfg = cfg.to_dict()
-    agent_cfg = {k: v for k, v in run_cfg['agent'].items() if k not in ('kappa', 'patience')}
-    chunk = {k: run_cfg['protocol'][k] for k in ('horizon', 'backend', 'workers')}
-    sig = json.dumps([trained.method, dataclasses.replace(trained.config, seed=0).to_dict(), run_cfg['map'],
-                      agent_cfg, chunk], sort_keys=True)
-    if sig not in programs:
-        steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans,
-                              patience=cfg.agent.patience).steps
-        programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh(), cfg.protocol.backend,
-                                     cfg.protocol.workers)
-    return programs[sig]
-
-
-def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, variants: dict, k_map, k_eval,
-                     out: str, info: dict, log=print, programs: Optional[dict] = None, train_layout=None):
-    """The map from ``observations`` and the protocol for a trained method, then the report in
-    ``out`` (``results.json`` and pictures). With ``cfg.protocol.calibrate`` ('fixed' or 'stall')
-    a calibration pass on the training layout (``train_layout``, default the maze's) sets the AQM
-    row's budget first (:func:`~aqm_mjx.evaluation.evaluate.calibration_pass`; recorded as
-    ``calibration`` in ``results.json``). ``programs``: a dict that keeps compiled evaluation
-    chunks across calls (several seeds of a method). Returns ``(Results, report dict)``."""
-    agent = trained.agent
-    if agent.plans:
-        graph, m = trimmed_map(agent, observations, cfg.map, k_map)
-    else:  # a flat method: no quasimetric, no map
-        graph, m = None, dict(keypoints=0, overflow=False, seconds=0.0)
-        log(f'{trained.method} has no quasimetric: no map, its controller is evaluated flat')
-    if m['overflow']:
-        log(f'warning: {cfg.map.max_keypoints} keypoints did not cover the candidates at delta {cfg.map.delta}; '
-            'raise --max-keypoints or --delta')
-    n_agents = 1 + len(cfg.protocol.ablations) if agent.plans else 1
-    log(f'{env.name}, {trained.method} {trained.config.preset} preset at step {trained.step}: {m["keypoints"]} '
-        f'keypoints at delta {cfg.map.delta} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
-        f'{len(cfg.protocol.tasks) or env.num_tasks} tasks x {cfg.protocol.episodes} episodes on '
-        f'{jax.device_count()} device(s)')
-    owned = programs is None  # the calibration pass and the evaluation share one compiled chunk
-    programs = {} if owned else programs
-    program = _program(programs, trained, env, cfg, variants)
-    try:
-        agent_cfg, cal, budgets = cfg.agent, None, None
-        if agent.plans and needs_calibration(cfg.protocol):
-            cal = calibration_pass(env, agent, graph, cfg.agent, cfg.protocol, k_eval, layout=train_layout,
-                                   program=program)
-            agent_cfg, budgets = dataclasses.replace(cfg.agent, kappa=cal['kappa'], patience=cal['patience']), cal['budgets']
-            log(calibration_line(cal, cfg.agent))
-        res = evaluate(env, agent, graph, agent_cfg, cfg.protocol, variants, key=k_eval, program=program,
-                       budgets=budgets)
-    finally:
-        if owned:
-            for p in programs.values():
-                if hasattr(p, 'close'):
-                    p.close()
-    report.print_summary(res, log, cfg.protocol.false_alarm)
-    info = dict(info, method=trained.method, step=trained.step, train_preset=trained.config.preset,
-                keypoints=m['keypoints'], keypoint_overflow=m['overflow'], map_s=round(m['seconds'], 2),
-                config=cfg.to_dict(), **({} if cal is None else dict(calibration=cal)))
-    rep = report.write(res, graph, env.layout, variants, out, env.name, cfg.protocol.episodes, info,
-                       name=os.path.basename(os.path.normpath(info.get('checkpoint', out))),
-                       false_alarm=cfg.protocol.false_alarm)
-    log(f'wrote {out}/results.json and pictures')
-    return res, rep
-
-
-def calibration_line(cal: dict, agent_cfg) -> str:
-    """One line on what a calibration pass set (or why it set nothing)."""
-    where = (f'calibration pass: {cal["episodes"]} episodes without pruning between cells no task uses, '
-             f'{cal["legs"]} legs completed')
-    if not cal['calibrated']:
-        return (f'warning: {where}: nothing to calibrate from; AQM keeps kappa {agent_cfg.kappa:g}, '
-                f'patience {agent_cfg.patience:g}')
-    q = f'{cal["false_alarm"]:.1%} false alarms'
-    paper = f'; the paper\'s rule on keypoint edges: kappa {cal["kappa_edges"]:g}'
-    if cal['rule'] == 'stall':
-        how = (f'{cal["stall_scale"]:g} x the 90th percentile of the longest stall, {cal["stall_q"][1]:g} steps'
-               if cal.get('stall_scale', 0) > 0 else q)
-        return f'{where}: AQM row on the stall rule, patience {cal["patience"]:g} steps ({how}){paper}'
-    if cal['rule'] == 'fixed':
-        return f'{where}: AQM row on the fixed rule, kappa {cal["kappa"]:g} ({q}){paper}'
-    return f'{where} ({q}){paper}'
-
-
-def prepare_evaluation(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], shift: str, overrides):
-    """Everything an evaluation of ``checkpoint`` needs, checked before anything is loaded or built:
-    ``(env, variants, RunConfig, dataset path)``."""
-    method, train_cfg, meta = fit.read_meta(checkpoint)
-    if train_cfg.env is None:
-        raise ValueError(f'{checkpoint} does not record its environment (config.env); it cannot be evaluated')
-    env = envs.make(train_cfg.env)
-    variants = variants_for(env.maze, shift)
-    if dataset and not os.path.exists(dataset):
-        raise FileNotFoundError(f'--dataset {dataset}: no such file')
-    path = dataset or meta.get('dataset')
-    if not path or not os.path.exists(path):
-        raise FileNotFoundError(f'dataset {path!r} of {checkpoint} not found (keypoints are selected from its '
-                                'states); pass --dataset')
-    if cfg is None:
-        cfg = RunConfig.preset(preset_for_name(train_cfg.preset), method=method.name, env=train_cfg.env)
-    cfg = RunConfig(method=method.name, train=train_cfg, map=cfg.map, agent=cfg.agent,
-                    protocol=cfg.protocol).with_overrides(list(overrides))
-    check_evaluation_memory(env, cfg, len(variants))  # before the episode table is allocated
-    plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)  # bad task ids fail before any work
-    return env, variants, cfg, path
-
-
-def check_evaluation_memory(env, cfg: RunConfig, n_layouts: int) -> None:
-    """Refuse an evaluation whose episode table (host: the leg log and outcome of every episode) or
-    chunk of environments (device: ``protocol.envs`` states) cannot fit, naming the option."""
-    from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
-    from aqm_mjx.agent.rules import LEG_FIELDS, MAX_LEGS  # pylint: disable=import-outside-toplevel
-    from aqm_mjx.evaluation.protocol import agent_specs  # pylint: disable=import-outside-toplevel
-
-    p = cfg.protocol
-    rows = len(agent_specs(1.0, p.ablations)) * n_layouts * len(p.tasks or range(env.num_tasks)) * p.episodes
-    memory.check(rows * (MAX_LEGS * LEG_FIELDS * 4 + 256), f'the episode table ({rows:,} episodes)',
-                 '--episodes (or the layouts and ablations)', (memory.host_available(), 'host'))
-    if p.backend == 'mjx':
-        memory.check(p.envs * memory.env_state_bytes(env) * memory.FACTOR,
-                     f'a chunk of {p.envs:,} environments', '--envs')
-
-
-def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, dataset: Optional[str] = None,
-                        shift: str = 'base', out: Optional[str] = None, seed: int = 0, overrides=(), log=print):
-    """``aqm-mjx evaluate``: load a run folder, map, evaluate, write ``results.json`` and pictures.
-
-    ``cfg`` defaults to the run preset of the checkpoint's training preset, with ``overrides``
-    (``section.field=value``) applied; its ``train`` section is the checkpoint's. The map and
-    episode keys are :func:`~aqm_mjx.pipeline.stage_keys` of ``PRNGKey(seed)``, as in ``aqm-mjx run``.
-    Layouts, tasks and the dataset are checked before anything is loaded or built.
-    """
-    env, variants, cfg, path = prepare_evaluation(checkpoint, cfg, dataset, shift, overrides)
-    out = out or os.path.join(checkpoint, 'eval')
-    files.check_writable(out, EVAL_OUTPUT_BYTES, 'the evaluation\'s results and pictures')  # before the episodes
-    trained = fit.load(checkpoint, log=log)
-    data = read_data(path, env)
-    _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
-    info = dict(checkpoint=os.path.abspath(checkpoint), dataset=os.path.abspath(path), seed=seed)
-    return map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval, out, info, log)
-
-
-def checkpoint_labels(checkpoints, names) -> list[str]:
-    """Row labels of several checkpoints of methods ``names``: the method's name, or with the run
-    folder's where methods repeat."""
-    folders = [os.path.basename(os.path.normpath(c)) or c for c in checkpoints]
-    labels = [n if names.count(n) == 1 else f'{n}:{f}' for n, f in zip(names, folders)]
-    if len(set(labels)) != len(labels):
-        labels = [f'{n}:{i}' for i, n in enumerate(names)]
-    return labels
-
-
-def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None, dataset: Optional[str] = None,
-                         shift: str = 'base', seed: int = 0, overrides=(), log=print) -> dict:
-    """``aqm-mjx evaluate --checkpoint A --checkpoint B ...``: several checkpoints (any methods, one
-    environment) on the same episodes: the same protocol, layouts, tasks and episode keys
-    (:func:`~aqm_mjx.pipeline.stage_keys` of ``PRNGKey(seed)``). Each is written to ``out/LABEL``;
-    ``out/results.json`` holds the table ``{LABEL/agent: {layout: {'task_T': rate, 'mean': rate}}}``
-    and ``out/success.png`` its bars. Every checkpoint is checked before any is evaluated."""
-    checkpoints = list(checkpoints)
-    if not checkpoints:
-        raise ValueError('give at least one --checkpoint')
-    prepared = [prepare_evaluation(c, cfg, dataset, shift, overrides) for c in checkpoints]
-    env_names = sorted({p[0].name for p in prepared})
-    if len(env_names) > 1:
-        raise ValueError(f'the checkpoints were trained on different environments ({", ".join(env_names)}); '
-                         'compare checkpoints of one environment')
-    labels = checkpoint_labels(checkpoints, [p[2].method for p in prepared])  # config.json read once, above
-    files.check_writable(out, EVAL_OUTPUT_BYTES * (len(checkpoints) + 1),  # before any map or episode
-                         'the evaluation\'s results and pictures')
-    _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
-    table, per, programs, observations = {}, {}, {}, {}
-    for label, ckpt, (env, variants, c, path) in zip(labels, checkpoints, prepared):
-        log(f'== {label} ({ckpt})')
-        trained = fit.load(ckpt, log=log)
-        if path not in observations:  # checkpoints of one dataset (seeds of a method) read it once
-            observations[path] = read_data(path, env)['observations']
-        info = dict(checkpoint=os.path.abspath(ckpt), dataset=os.path.abspath(path), seed=seed)
-        res, rep = map_and_evaluate(trained, env, observations[path], c, variants, k_map, k_eval,
-                                    os.path.join(out, label), info, log, programs)
-        per[label] = dict(checkpoint=os.path.abspath(ckpt), method=trained.method, step=trained.step,
-                          keypoints=rep['keypoints'])
-        for agent_name in res.agents:
-            table[f'{label}/{agent_name}'] = res.summary[agent_name]
-    env, variants = prepared[0][0], prepared[0][1]
-    first = list(variants)[0]
-    combined = dict(env=env.name, seed=seed, episodes=prepared[0][2].protocol.episodes,
-                    split=prepared[0][2].protocol.split, checkpoints=per, tasks=res.tasks, variants=list(variants),
-                    summary=table, config=prepared[0][2].to_dict(), provenance=files.provenance())
-    files.write_json(os.path.join(out, 'results.json'), combined, makedirs=True)
-    plots.success_bars(table, first, res.tasks, os.path.join(out, 'success.png'),
-                       title=f'{env.name} ({first}): every checkpoint on the same episodes')
-    width = max(len(k) for k in table)
-    log(f'{"checkpoint/agent":<{width}}  mean success ({first})')
-    for k, row in table.items():
-        log(f'{k:<{width}}  {100 * row[first]["mean"]:5.1f}%')
-    log(f'wrote {out}/results.json and {out}/success.png')
-    return combined
 
 
 # ------------------------------------------------------------------------------------- the run

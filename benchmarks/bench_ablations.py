@@ -32,7 +32,7 @@ import time
 
 import jax
 
-from aqm_mjx import envs, run
+from aqm_mjx import assess, envs, run
 from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.evaluation import evaluate
 from aqm_mjx.evaluation.protocol import ProtocolConfig
@@ -71,7 +71,7 @@ def run_case(case: str, a, out: str, rows: list) -> None:
     episodes = a.episodes * (5 if style == 'stitch' else 1)
     path = run.data_stage(env_name, out, given, episodes, a.collect_batch, style=style)
     t_data = time.perf_counter() - t0
-    data = run.read_data(path, env)
+    data = assess.read_data(path, env)
     print(f'{case}: {len(data["observations"]):,} transitions from {path} ({t_data:.0f} s)', flush=True)
     models, t_train = {}, {}
     for obj in a.objectives:

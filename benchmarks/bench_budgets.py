@@ -52,7 +52,7 @@ from aqm_mjx.evaluation import protocol
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import stage_keys
-from aqm_mjx.run import prepare_evaluation, read_data
+from aqm_mjx.assess import prepare_evaluation, read_data
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
 

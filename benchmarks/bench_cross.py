@@ -36,7 +36,8 @@ from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, stats
 from aqm_mjx.learn import fit
 from aqm_mjx.pipeline import PRESETS, RunConfig, stage_keys
-from aqm_mjx.run import data_stage, read_data
+from aqm_mjx.assess import read_data
+from aqm_mjx.run import data_stage
 
 from _report import finish  # benchmarks/ (the script's folder is on sys.path)
 from bench_budgets import one_seed

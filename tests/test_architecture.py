@@ -11,7 +11,7 @@ import aqm_mjx
 ROOT = pathlib.Path(aqm_mjx.__file__).parent
 # Stages in data-flow order: a module may import its own stage and earlier ones only.
 STAGES = ['_mjx', 'files', 'memory', 'presets', 'config', 'interface', 'progress', 'envs', 'data', 'learn', 'mapping', 'agent', 'evaluation',
-          'pipeline', 'run', 'compare', 'cli']
+          'pipeline', 'assess', 'run', 'compare', 'cli']
 
 
 def modules():

@@ -330,7 +330,7 @@ def test_baseline_resume_is_bit_identical(tmp_path, name):
 # ------------------------------------------------------------------------------- evaluation
 @pytest.mark.slow  # the compare tests evaluate flat methods in CI (tests/test_compare.py)
 def test_a_flat_method_is_evaluated_without_a_map(tmp_path):
-    from aqm_mjx import run as run_lib
+    from aqm_mjx import assess as run_lib
 
     data = synthetic.point_walks(n_traj=30, t_len=60)
     path = str(tmp_path / 'pointmaze-medium-navigate.npz')
@@ -349,7 +349,7 @@ def test_a_flat_method_is_evaluated_without_a_map(tmp_path):
 @pytest.mark.slow
 def test_flat_methods_meet_the_same_episodes_as_aqm_and_compare_in_one_table(tmp_path):
     from aqm_mjx import envs
-    from aqm_mjx import run as run_lib
+    from aqm_mjx import assess as run_lib
     from aqm_mjx.agent.rules import AgentConfig
     from aqm_mjx.evaluation.evaluate import evaluate
     from aqm_mjx.evaluation.protocol import ProtocolConfig

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from aqm_mjx import cli, compare, envs, files, pipeline, run
+from aqm_mjx import assess, cli, compare, envs, files, pipeline, run
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
 from aqm_mjx.evaluation import stats
@@ -195,7 +195,7 @@ def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(t
         compare.compare('pointmaze-medium', ['gcbc'], 2, out, preset='ci', dataset=path, overrides=over[:1], **QUIET)
     # the data's SHA-256 is recorded beside the request and in the table's JSON; a file changed under the
     # folder is refused before any work, and the folder's record is kept as it was
-    digest = ds_io.fingerprint(run.read_data(path, envs.make('pointmaze-medium')))
+    digest = ds_io.fingerprint(assess.read_data(path, envs.make('pointmaze-medium')))
     saved = json.load(open(os.path.join(out, 'compare.json')))
     assert first['data_sha256'] == second['data_sha256'] == saved['data_sha256'] == digest and len(digest) == 64
     data, _ = _data(tmp_path)

@@ -64,17 +64,17 @@ def test_medium_shift_by_hand():
 def test_shift_names_pick_layouts():
     """--shift: 'closures' is the training layout and the suite's closed corridors; a comma list
     picks layouts in its order; repeats, empty and unknown names are refused by name."""
-    from aqm_mjx import run
-    assert list(run.variants_for('medium', 'closures')) == ['base', 'close-3-3', 'close-5-4', 'close-6-2']
-    v = run.variants_for('medium', 'close-6-2, base')
+    from aqm_mjx import assess
+    assert list(assess.variants_for('medium', 'closures')) == ['base', 'close-3-3', 'close-5-4', 'close-6-2']
+    v = assess.variants_for('medium', 'close-6-2, base')
     assert list(v) == ['close-6-2', 'base'] and v['close-6-2'][6, 2] == 1 and v['base'][6, 2] == 0
-    assert list(run.variants_for('medium', 'all')) == list(shifts.suite('medium'))
+    assert list(assess.variants_for('medium', 'all')) == list(shifts.suite('medium'))
     with pytest.raises(ValueError, match=r"\['base'\] named twice"):
-        run.variants_for('medium', 'base,base')
+        assess.variants_for('medium', 'base,base')
     with pytest.raises(ValueError, match='an empty name'):
-        run.variants_for('medium', 'base,')
+        assess.variants_for('medium', 'base,')
     with pytest.raises(ValueError, match="unknown shift 'close-1-1'"):
-        run.variants_for('medium', 'base,close-1-1')
+        assess.variants_for('medium', 'base,close-1-1')
 
 
 # ------------------------------------------------------------------------------------ the table

@@ -6,7 +6,7 @@ import pathlib
 
 import pytest
 
-from aqm_mjx import cli, compare, envs, pipeline, presets, run
+from aqm_mjx import assess, cli, compare, envs, pipeline, presets, run
 from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.evaluation import protocol
 from aqm_mjx.learn import methods
@@ -66,7 +66,7 @@ def test_a_changed_preset_reaches_run_evaluate_compare_and_the_one_program(monke
     assert table.kappa[table.agent == 0].tolist() == pytest.approx([0.37] * int((table.agent == 0).sum()))
     # evaluate: a checkpoint trained at the ci preset takes the ci row (the batch is the checkpoint's own)
     ckpt, path = run.demo_run(str(tmp_path), steps=50)
-    _, _, cfg, _ = run.prepare_evaluation(ckpt, None, path, 'base', [])
+    _, _, cfg, _ = assess.prepare_evaluation(ckpt, None, path, 'base', [])
     assert (cfg.agent.kappa, cfg.map.delta, cfg.train.batch_size) == (0.37, 0.41, 48)
     # the command line's --preset on evaluate reads the same row
     a = parser.parse_args(['evaluate', '--checkpoint', ckpt, '--preset', 'ci'])

@@ -184,7 +184,7 @@ def cmd_run(a):
     enable_compile_cache()
     import jax  # pylint: disable=import-outside-toplevel
 
-    from aqm_mjx import envs, files, run  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import assess, envs, files, run  # pylint: disable=import-outside-toplevel
 
     cfg = run_config(a)
     out = a.out or os.path.join('runs', a.env)
@@ -199,7 +199,7 @@ def cmd_run(a):
         raise ValueError('--one-program evaluates the base layout; drop --shift')
     with files.run_lock(out):  # one writer per run folder
         path = run.data_stage(a.env, out, a.dataset, collect_episodes_of(a), a.collect_batch)
-        data = run.read_data(path, envs.make(a.env))
+        data = assess.read_data(path, envs.make(a.env))
         res = run.run_one_program(cfg, data, a.seeds)
         files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
     print(f'wrote {out}/one_program.json')
@@ -220,7 +220,7 @@ def cmd_evaluate(a):
 
         jax.distributed.initialize()  # before any other JAX call: every host runs this same command
     enable_compile_cache()
-    from aqm_mjx import pipeline, run  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import assess, pipeline  # pylint: disable=import-outside-toplevel
 
     overrides = overrides_of(a)
     if any(o.startswith('train.') for o in overrides):
@@ -228,11 +228,11 @@ def cmd_evaluate(a):
                          'protocol. fields here')
     cfg = None if a.preset is None else pipeline.RunConfig.preset(a.preset)
     if len(a.checkpoint) == 1:
-        run.evaluate_checkpoint(a.checkpoint[0], cfg, dataset=a.dataset, shift=a.shift, out=a.out, seed=a.seed,
+        assess.evaluate_checkpoint(a.checkpoint[0], cfg, dataset=a.dataset, shift=a.shift, out=a.out, seed=a.seed,
                                 overrides=overrides)
     else:
         out = a.out or os.path.join(os.path.dirname(os.path.normpath(a.checkpoint[0])), 'comparison')
-        run.evaluate_checkpoints(a.checkpoint, out, cfg, dataset=a.dataset, shift=a.shift, seed=a.seed,
+        assess.evaluate_checkpoints(a.checkpoint, out, cfg, dataset=a.dataset, shift=a.shift, seed=a.seed,
                                  overrides=overrides)
     return 0
 
