@@ -32,7 +32,7 @@ import jax.numpy as jnp
 
 from aqm_mjx import envs, files, presets
 from aqm_mjx.data import dataset as ds_io
-from aqm_mjx.evaluation import plots, stats
+from aqm_mjx.evaluation import plots, report, stats
 from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit, methods
 from aqm_mjx.pipeline import RunConfig, stage_keys
@@ -162,29 +162,6 @@ def aggregate(per_method: dict[str, dict], seeds: Sequence[int]) -> dict:
     return rows
 
 
-def _pct(x: float) -> str:
-    return f'{100 * x:.0f}'
-
-
-def _span(ci) -> str:
-    return '-' if ci is None else f'{_pct(ci[0])}-{_pct(ci[1])}'
-
-
-def markdown(rows: dict, variant: str, tasks: Sequence[int], seeds: Sequence[int], episodes: int) -> str:
-    """The comparison as a Markdown table (one layout)."""
-    head = ('| method | ' + ' | '.join(f'task {t}' for t in tasks) + ' | mean | 95% over seeds | '
-            '95% over episodes | per seed |')
-    lines = [head, '|' + '---|' * (len(tasks) + 5)]
-    for name, row in rows.items():
-        r = row[variant]
-        lines.append(f'| {name} | ' + ' | '.join(_pct(r[f'task_{t}']) for t in tasks)
-                     + f' | **{_pct(r["mean"])}** | {_span(r["seed_ci95"])} | {_span(r["episodes_ci95"])} | '
-                     + ', '.join(_pct(x) for x in r['seed_means']) + ' |')
-    lines.append(f'\nSuccess (%) on layout {variant}; seeds {", ".join(map(str, seeds))}; {len(tasks)} tasks x '
-                 f'{episodes} episodes per seed; the same episodes for every method.')
-    return '\n'.join(lines) + '\n'
-
-
 def _write_tables(out, spec, per_method, seed_ids, cfgs, log) -> dict:
     """``OUT/results.json``, ``table.md`` and ``success.png`` of the methods evaluated so far."""
     names = list(per_method)
@@ -206,7 +183,7 @@ def _write(out: str, result: dict, log) -> None:
     rows, variant, seed_ids = result['rows'], result['variants'][0], result['seeds']
     result['provenance'] = files.provenance()  # what wrote this table (version, commit, command)
     files.write_json(os.path.join(out, 'results.json'), result, makedirs=True)
-    table = markdown(rows, variant, result['tasks'], seed_ids, int(result['episodes']))
+    table = report.comparison_markdown(rows, variant, result['tasks'], seed_ids, int(result['episodes']))
     files.write_text(os.path.join(out, 'table.md'), table)
     plots.method_bars(rows, variant, os.path.join(out, 'success.png'),
                       title=f'{result["env"]} {result["style"]} ({variant}), {result["preset"]} preset: mean of '

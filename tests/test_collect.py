@@ -37,16 +37,16 @@ def test_junction_cells_on_a_hand_drawn_maze():
                      [1, 1, 1, 1, 1]])
     # (1,2) is a horizontal corridor cell and (2,1) a vertical one; (1,1) is a corner and (1,3),
     # (3,1) dead ends: all three are junction cells in OGBench's sense.
-    got = {tuple(c) for c in collect.junction_cells(grid)}
+    got = {tuple(c) for c in mazes.junction_cells(grid)}
     assert got == {(1, 1), (1, 3), (3, 1)}
-    assert len(collect.free_cells(grid)) == 5
+    assert len(mazes.free_cells(grid)) == 5
 
 
 @pytest.mark.parametrize('maze', ['medium', 'large', 'teleport'])
 def test_stitch_goal_cells_are_exactly_four_bfs_steps_away(maze):
     grid = mazes.layout(maze)
-    free = collect.free_cells(grid)
-    cells, count = collect.cells_at_bfs_distance(grid, 4)
+    free = mazes.free_cells(grid)
+    cells, count = mazes.cells_at_bfs_distance(grid, 4)
     dist = _grid_distances(grid)
     w = grid.shape[1]
     for f, (i, j) in enumerate(free):

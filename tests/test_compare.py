@@ -16,7 +16,7 @@ from scipy import stats as sps
 from aqm_mjx import assess, cli, compare, envs, files, pipeline, run
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
-from aqm_mjx.evaluation import stats
+from aqm_mjx.evaluation import report, stats
 from aqm_mjx.learn import fit, methods
 from aqm_mjx.pipeline import stage_keys
 
@@ -69,7 +69,7 @@ def test_aggregate_rows_from_per_seed_tables():
     assert r['episodes'] == 40
     assert r['episodes_ci95'] == [pytest.approx(x) for x in stats.wilson(32, 40)]
     assert r['seed_ci95'] == [pytest.approx(x) for x in stats.seed_interval([0.7, 0.9])]
-    md = compare.markdown(rows, 'base', [1, 2], [0, 1], 10)
+    md = report.comparison_markdown(rows, 'base', [1, 2], [0, 1], 10)
     assert '| gcbc | 80 | 80 | **80** |' in md and '| aqm/no-pruning |' in md
 
 

@@ -108,7 +108,7 @@ def cmd_train(a):
     from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
     from aqm_mjx.data import dataset  # pylint: disable=import-outside-toplevel
     from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
-    from aqm_mjx.learn import fit, methods  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import fit, folder, methods  # pylint: disable=import-outside-toplevel
 
     method = methods.get(a.method or 'aqm')
     try:
@@ -139,10 +139,10 @@ def cmd_train(a):
         if not os.path.exists(os.path.join(a.out, 'config.json')):
             raise FileNotFoundError(f'{a.out} holds no run to resume (no config.json); start a new run without --resume')
         _, saved, _ = fit.read_meta(a.out)
-        fit.check_resume_request(a.out, a.method, None)  # another method first: its fields are not comparable
+        folder.check_resume_request(a.out, a.method, None)  # another method first: its fields are not comparable
         base = method.preset(a.preset, style=style, env=saved.env, seed=saved.seed) if a.preset else saved
         changes = ([f'env={a.env}'] if a.env else []) + ([f'seed={a.seed}'] if a.seed is not None else []) + sets
-        fit.check_resume_request(a.out, None, base.with_overrides(changes))
+        folder.check_resume_request(a.out, None, base.with_overrides(changes))
     data = dataset.read_ogbench(a.dataset, obs_size=obs_size, action_size=action_size, add_info=False)
     print(f'dataset {a.dataset}: {len(data["terminals"])} states, {int(data["terminals"].sum())} trajectories')
     if cfg is not None:

@@ -263,3 +263,51 @@ def subcell_to_xy(index, grid_shape, sub: int = 2) -> np.ndarray:
     row, col = np.divmod(np.asarray(index), grid_shape[1] * sub)
     step = MAZE_UNIT / sub
     return np.stack([col, row], -1) * step - MAZE_OFFSET - MAZE_UNIT / 2 + step / 2
+
+
+# ------------------------------------------------------------------------- cells the datasets use
+def free_cells(grid) -> np.ndarray:
+    """int32 ``[F, 2]`` (i, j) of the free cells, row-major."""
+    return np.argwhere(np.asarray(grid) == 0).astype(np.int32)
+
+
+def junction_cells(grid) -> np.ndarray:
+    """int32 ``[V, 2]`` free cells that are not straight corridor cells (OGBench's navigate goals).
+
+    A corridor cell has free cells on two opposite sides and walls on the other two.
+    """
+    g = np.asarray(grid)
+    h, w = g.shape
+
+    def wall(i, j):
+        return not (0 <= i < h and 0 <= j < w) or g[i, j] != 0
+
+    keep = []
+    for i, j in free_cells(g):
+        vertical = not wall(i - 1, j) and not wall(i + 1, j) and wall(i, j - 1) and wall(i, j + 1)
+        horizontal = not wall(i, j - 1) and not wall(i, j + 1) and wall(i - 1, j) and wall(i + 1, j)
+        if not (vertical or horizontal):
+            keep.append((i, j))
+    return np.asarray(keep, np.int32).reshape(-1, 2)
+
+
+def cells_at_bfs_distance(grid, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Cells exactly ``k`` BFS steps from each free cell.
+
+    Returns:
+        ``cells`` int32 ``[F, C, 2]`` (padded with the start cell itself) and ``count`` int32 ``[F]``
+        for the free cells in :func:`free_cells` order. Where no cell is ``k`` steps away the count is
+        1 and the only entry is the start cell (OGBench's fallback).
+    """
+    g = np.asarray(grid)
+    w = g.shape[1]
+    steps = bfs_steps(g)
+    found = []
+    for i0, j0 in free_cells(g):
+        ring = [divmod(int(c), w) for c in np.flatnonzero(steps[i0 * w + j0] == k)]
+        found.append(ring or [(int(i0), int(j0))])
+    width = max(len(r) for r in found)
+    cells = np.zeros((len(found), width, 2), np.int32)
+    for n, ring in enumerate(found):
+        cells[n] = np.asarray(ring + [ring[0]] * (width - len(ring)), np.int32)
+    return cells, np.asarray([len(r) for r in found], np.int32)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from typing import Optional
+from typing import Optional, Sequence
 
 import jax
 import numpy as np
@@ -63,3 +63,25 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
                       title=f'{env_name}: trained on base, evaluated on each layout (mean success)')
     return report
 
+
+def _pct(x: float) -> str:
+    return f'{100 * x:.0f}'
+
+
+def _span(ci) -> str:
+    return '-' if ci is None else f'{_pct(ci[0])}-{_pct(ci[1])}'
+
+
+def comparison_markdown(rows: dict, variant: str, tasks: Sequence[int], seeds: Sequence[int], episodes: int) -> str:
+    """A comparison (``aqm-mjx compare``'s aggregated rows) as a Markdown table of one layout."""
+    head = ('| method | ' + ' | '.join(f'task {t}' for t in tasks) + ' | mean | 95% over seeds | '
+            '95% over episodes | per seed |')
+    lines = [head, '|' + '---|' * (len(tasks) + 5)]
+    for name, row in rows.items():
+        r = row[variant]
+        lines.append(f'| {name} | ' + ' | '.join(_pct(r[f'task_{t}']) for t in tasks)
+                     + f' | **{_pct(r["mean"])}** | {_span(r["seed_ci95"])} | {_span(r["episodes_ci95"])} | '
+                     + ', '.join(_pct(x) for x in r['seed_means']) + ' |')
+    lines.append(f'\nSuccess (%) on layout {variant}; seeds {", ".join(map(str, seeds))}; {len(tasks)} tasks x '
+                 f'{episodes} episodes per seed; the same episodes for every method.')
+    return '\n'.join(lines) + '\n'

@@ -123,6 +123,9 @@ class AQMConfig(LoopConfig):
         return cfg_lib.from_dict(cls, d)
 
 
+# the metrics the training bar shows, {metric: short name}
+PROGRESS = {'qrl/d_pos_mean': 'd_pos_mean', 'qrl/d_goal_mean': 'd_goal_mean', 'qrl/lambda': 'lambda',
+            'policy/main_loss': 'main_loss'}
 # each preset's sizes beside the loop's (aqm_mjx.presets.LOOP)
 SIZES = {
     'paper': dict(q_hidden=(512, 512, 512), n_components=512, component_size=1, pi_hidden=(512, 512, 512),

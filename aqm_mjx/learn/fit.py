@@ -5,7 +5,7 @@
     trained.agent                                 # the Agent with the final parameters
 
 A run folder holds ``config.json`` (method name, config, shapes, dataset path), ``metrics.jsonl``
-and ``checkpoints/<step>/``; :func:`load` rebuilds a trained method from the folder alone.
+and ``checkpoints/<step>/``; :func:`aqm_mjx.learn.folder.load` rebuilds a trained method from it alone.
 """
 
 from __future__ import annotations
@@ -17,18 +17,17 @@ import json
 import math
 import os
 import time
-from typing import Any, Callable, NamedTuple, Optional, Union
+from typing import Any, Callable, Optional, Union
 
 import jax
 import jax.numpy as jnp
 
 from aqm_mjx import files
 from aqm_mjx.data import dataset as ds_io
-from aqm_mjx.interface import Agent
 from aqm_mjx.learn import checkpoint as ckpt
 from aqm_mjx.learn import methods
-from aqm_mjx.learn.folder import (check_against_checkpoint, check_resumable, check_resume_request,  # noqa: F401
-                                  check_same_data, checkpoint_steps, fingerprint, meta_of, read_meta, trim_metrics)
+from aqm_mjx.learn.folder import (Trained, check_against_checkpoint, check_resumable,  # noqa: F401 (load: re-exported)
+                                  check_same_data, checkpoint_steps, fingerprint, load, meta_of, read_meta, trim_metrics)
 from aqm_mjx.learn.learner import Learner
 
 # ------------------------------------------------------------------------------------ pure parts
@@ -64,25 +63,6 @@ def train_scan(learner: Learner, key: jax.Array, ds: ds_io.Dataset, progress: Op
 
 
 # ------------------------------------------------------------------------------------- host loop
-class Trained(NamedTuple):
-    """A trained method: its entry, config, learner, state and where it came from."""
-
-    method: str
-    config: Any
-    learner: Learner
-    state: Any
-    step: int
-    meta: dict
-
-    @property
-    def params(self):
-        return self.learner.params(self.state)
-
-    @property
-    def agent(self) -> Agent:
-        return self.learner.agent(self.params)
-
-
 def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, resume: Union[bool, str] = False,
           steps: Optional[int] = None, dataset_path: Optional[str] = None, progress: bool = True, log=print,
           key: Optional[jax.Array] = None) -> Trained:
@@ -166,7 +146,7 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
     files.write_json(cfg_path, meta)
     chunk = jax.jit(chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
     state, step = _host_loop(chunk, state, ds, cfg, start, [out], [saver], [meta], [set()], None,
-                             f'train {method.name} {cfg.preset}', progress)
+                             f'train {method.name} {cfg.preset}', progress, method.progress)
     return Trained(method.name, cfg, learner, state, step, meta)
 
 
@@ -219,7 +199,7 @@ def _append(f, line: str) -> None:
 
 
 def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], savers: list, metas: list[dict],
-               skip: list[set], seeds: Optional[int], desc: str, progress: bool):
+               skip: list[set], seeds: Optional[int], desc: str, progress: bool, shown: dict):
     """The host side of training, shared by :func:`train` (``seeds=None``: one unvmapped state) and
     :func:`train_seeds` (``seeds=S``: every leaf stacked on a leading axis, one folder per seed).
 
@@ -227,7 +207,8 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
     (on the first non-finite value: write that chunk's metric line, stop with :class:`DivergedError`;
     no checkpoint of a non-finite state is ever written), append strict-JSON metric lines every
     ``log_every`` updates, move the bar, save checkpoints every ``checkpoint_every`` updates (not
-    those in ``skip[i]``, already on disk). Returns ``(state, step)``.
+    those in ``skip[i]``, already on disk). ``shown``: the metrics on the bar, ``{metric: short name}``
+    (the method's ``progress``). Returns ``(state, step)``.
     """
     n = 1 if seeds is None else seeds
     pick = (lambda x, i: x) if seeds is None else (lambda x, i: x[i])
@@ -261,7 +242,7 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
                                 savers[i].steps(), start)
             if bar is not None:
                 # postfix first without a redraw: update() draws once (a refresh here wrote every line twice in logs)
-                bar.set_postfix({PROGRESS_KEYS[k]: f'{v:.3g}' for k, v in lines[0].items() if k in PROGRESS_KEYS},
+                bar.set_postfix({shown[k]: f'{v:.3g}' for k, v in lines[0].items() if k in shown},
                                 refresh=False)
                 bar.update(cfg.updates_per_call)
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
@@ -279,12 +260,6 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
 
 
 #: Metrics shown on the training bar (first seed), by the label they get there: AQM's, then the baselines' losses.
-PROGRESS_KEYS = {'qrl/d_pos_mean': 'd_pos_mean', 'qrl/d_goal_mean': 'd_goal_mean', 'qrl/lambda': 'lambda',
-                 'policy/main_loss': 'main_loss', 'value/loss': 'value', 'critic/loss': 'critic',
-                 'actor/loss': 'actor', 'high_actor/loss': 'high', 'low_actor/loss': 'low',
-                 'value/lambda': 'lambda'}
-
-
 def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs: list[str], keys: jax.Array,
                 dataset_path: Optional[str] = None, progress: bool = True, log=print) -> list[Trained]:
     """Train ``S`` seeds of one method as one vmapped program, each into its own run folder.
@@ -355,7 +330,7 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) ->
     chunk = jax.jit(jax.vmap(chunk_step(learner.update, cfg.updates_per_call), in_axes=(0, None)),
                     donate_argnums=0)
     state, step = _host_loop(chunk, state, ds, cfg, start, outs, savers, metas, [set(d) for d in done], n,
-                             f'train {method.name} {cfg.preset} x{n} seeds', progress)
+                             f'train {method.name} {cfg.preset} x{n} seeds', progress, method.progress)
     return [Trained(method.name, c, learner, jax.tree.map(lambda x, i=i: x[i], state), step, meta)
             for i, (c, meta) in enumerate(zip(cfgs, metas))]
 
@@ -378,30 +353,3 @@ def _restore_common(savers: list, templates: list, done: list[list[int]], log) -
                 break
         else:
             return start, states
-
-
-def load(out: str, step: Optional[int] = None, log=print) -> Trained:
-    """A run folder for evaluation: its ``config.json`` and the newest readable checkpoint (one whose
-    arrays are finite and match the digest saved with them; a newer one that is not is named in a
-    warning line). Raises :class:`~aqm_mjx.learn.checkpoint.CheckpointError` when none is."""
-    method, cfg, meta = read_meta(out)
-    writer = files.writer_of(out)
-    if writer:  # its checkpoints come and go (keep) while they are read
-        log(f'warning: {out} is being trained by another process ({files.describe_writer(writer)}); reading its '
-            'newest checkpoint now')
-    saver = ckpt.Checkpointer(out, keep=None, create=False)
-    try:
-        check_against_checkpoint(out, meta, saver, step)
-        learner = method.make(cfg, meta['obs_size'], meta['action_size'])
-        template = learner.init(jax.random.PRNGKey(0))
-        quiet_log = (lambda *_: None) if writer else log  # a step the writer deleted is not damage
-        s, state, _ = saver.restore(template, step=step, log=quiet_log)  # non-finite or damaged: the previous one
-    except ckpt.CheckpointError as e:
-        if writer:
-            raise ckpt.CheckpointError(f'no checkpoint of {out} could be read while another process trains into '
-                                       f'it ({files.describe_writer(writer)}): wait for it to end, or copy the '
-                                       'folder and evaluate the copy') from None
-        raise
-    finally:
-        saver.close()
-    return Trained(method.name, cfg, learner, state, s, meta)

@@ -1,6 +1,6 @@
 """A training run's folder: what ``config.json`` records (method, config, shapes, the data's path and
-fingerprint), reading it back, and the checks before a run continues in a folder: same method,
-config and data, and a config.json that agrees with the checkpoints beside it.
+fingerprint), the checks before a run continues in a folder (same method, config and data, and a
+config.json that agrees with the checkpoints beside it), and :func:`load`, the trained method back.
 
     method, cfg, meta = folder.read_meta('runs/medium/train')
     folder.checkpoint_steps('runs/medium/train')        # [5000, 10000, ...]
@@ -10,14 +10,37 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional
+
+import jax
 
 from aqm_mjx import files
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.learn import checkpoint as ckpt
+from aqm_mjx.interface import Agent
 from aqm_mjx.learn import methods
+from aqm_mjx.learn.learner import Learner
 
 FORMAT = 'aqm_mjx.train/1'
+
+
+class Trained(NamedTuple):
+    """A trained method: its entry, config, learner, state and where it came from."""
+
+    method: str
+    config: Any
+    learner: Learner
+    state: Any
+    step: int
+    meta: dict
+
+    @property
+    def params(self):
+        return self.learner.params(self.state)
+
+    @property
+    def agent(self) -> Agent:
+        return self.learner.agent(self.params)
 
 
 def meta_of(method: str, cfg, obs_size: int, action_size: int, dataset_path: Optional[str],
@@ -161,3 +184,30 @@ def checkpoint_steps(out: str) -> list[int]:
         return saver.steps()
     finally:
         saver.close()
+
+
+def load(out: str, step: Optional[int] = None, log=print) -> Trained:
+    """A run folder for evaluation: its ``config.json`` and the newest readable checkpoint (one whose
+    arrays are finite and match the digest saved with them; a newer one that is not is named in a
+    warning line). Raises :class:`~aqm_mjx.learn.checkpoint.CheckpointError` when none is."""
+    method, cfg, meta = read_meta(out)
+    writer = files.writer_of(out)
+    if writer:  # its checkpoints come and go (keep) while they are read
+        log(f'warning: {out} is being trained by another process ({files.describe_writer(writer)}); reading its '
+            'newest checkpoint now')
+    saver = ckpt.Checkpointer(out, keep=None, create=False)
+    try:
+        check_against_checkpoint(out, meta, saver, step)
+        learner = method.make(cfg, meta['obs_size'], meta['action_size'])
+        template = learner.init(jax.random.PRNGKey(0))
+        quiet_log = (lambda *_: None) if writer else log  # a step the writer deleted is not damage
+        s, state, _ = saver.restore(template, step=step, log=quiet_log)  # non-finite or damaged: the previous one
+    except ckpt.CheckpointError as e:
+        if writer:
+            raise ckpt.CheckpointError(f'no checkpoint of {out} could be read while another process trains into '
+                                       f'it ({files.describe_writer(writer)}): wait for it to end, or copy the '
+                                       'folder and evaluate the copy') from None
+        raise
+    finally:
+        saver.close()
+    return Trained(method.name, cfg, learner, state, s, meta)

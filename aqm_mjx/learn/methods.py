@@ -14,7 +14,7 @@ import dataclasses
 from typing import Callable, Optional
 
 from aqm_mjx.learn import aqm
-from aqm_mjx.learn.baselines import crl, gcbc, gciql, gcivl, hiql, qrl, saw
+from aqm_mjx.learn.baselines import base, crl, gcbc, gciql, gcivl, hiql, qrl, saw
 from aqm_mjx.learn.learner import Learner
 
 
@@ -30,6 +30,7 @@ class Method:
         summary: one line for listings.
         style_defaults: ``{dataset style: fields}`` set for data of that style (AQM on ``explore``
             data: uniform random policy goals, the paper's App. 10.3), before ``overrides``.
+        progress: ``{metric: short name}`` of the metrics the training bar shows.
     """
 
     name: str
@@ -38,6 +39,7 @@ class Method:
     defaults: dict = dataclasses.field(default_factory=dict)
     summary: str = ''
     style_defaults: dict = dataclasses.field(default_factory=dict)
+    progress: dict = dataclasses.field(default_factory=lambda: dict(base.PROGRESS))
 
     def preset(self, preset: str, style: Optional[str] = None, **overrides):
         """The config of preset ``preset`` with this entry's defaults, those of dataset ``style``
@@ -70,11 +72,11 @@ def names() -> list[str]:
 
 AQM_EXPLORE = {'explore': {'policy_goals': 'random'}}  # paper App. 10.3: uniform random goals on explore data
 register(Method('aqm', aqm.AQMConfig, aqm.make, {'objective': 'saw'},
-                'AQM: IQE quasimetric (QRL), Q-AWR target and Q-SAW main policies', AQM_EXPLORE))
+                'AQM: IQE quasimetric (QRL), Q-AWR target and Q-SAW main policies', AQM_EXPLORE, aqm.PROGRESS))
 register(Method('aqm-awr', aqm.AQMConfig, aqm.make, {'objective': 'awr'},
-                "AQM's quasimetric with a Q-AWR policy on the goal (ablation)", AQM_EXPLORE))
+                "AQM's quasimetric with a Q-AWR policy on the goal (ablation)", AQM_EXPLORE, aqm.PROGRESS))
 register(Method('aqm-bc', aqm.AQMConfig, aqm.make, {'objective': 'bc'},
-                "AQM's quasimetric with a behaviour-cloned policy (ablation)", AQM_EXPLORE))
+                "AQM's quasimetric with a behaviour-cloned policy (ablation)", AQM_EXPLORE, aqm.PROGRESS))
 # OGBench's per-dataset settings (impls/hyperparameters.sh, antmaze-*-stitch and -explore): actor goals from
 # random dataset states on data whose trajectories do not cross the maze, and the explore alphas. GCBC keeps
 # its trajectory goals. SAW's public settings for these styles are not known to us: it takes HIQL's goal

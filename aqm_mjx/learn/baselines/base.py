@@ -89,6 +89,9 @@ class BaselineConfig(LoopConfig):
     PRESET_OVERRIDES = {}  # a method's preset-specific values (class attribute, not a field)
 
 
+# the metrics the training bar shows, {metric: short name} (those a baseline logs)
+PROGRESS = {'value/loss': 'value', 'critic/loss': 'critic', 'actor/loss': 'actor', 'high_actor/loss': 'high',
+            'low_actor/loss': 'low', 'value/lambda': 'lambda'}
 # each preset's network widths beside the loop's (aqm_mjx.presets.LOOP)
 SIZES = {
     'paper': dict(actor_hidden=(512, 512, 512), value_hidden=(512, 512, 512), conditioning='goal'),
