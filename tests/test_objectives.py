@@ -11,7 +11,7 @@ import pytest
 from aqm_mjx.data import dataset as dsm
 from aqm_mjx.data import goals
 from aqm_mjx.data import synthetic
-from aqm_mjx.learn import aqm, objectives
+from aqm_mjx.learn import aqm, losses, objectives
 from aqm_mjx.learn.policy import kl, log_prob
 
 T, CLIP = 2.0, 100.0
@@ -76,7 +76,7 @@ def test_target_policy_gets_no_gradient_from_the_main_policy():
 
     def target_only(p):
         mu, ls = run(p['target'], BATCH.subgoals)
-        return objectives.awr_loss(log_prob(mu, ls, BATCH.actions), D['sw'] - D['s1w'], T, CLIP)[0]
+        return losses.awr_loss(log_prob(mu, ls, BATCH.actions), D['sw'] - D['s1w'], T, CLIP)[0]
 
     want = jax.grad(target_only)(PARAMS)
     for k in ('w', 's'):

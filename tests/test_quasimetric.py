@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from aqm_mjx.learn import losses
 from aqm_mjx.learn import quasimetric as qm
 
 
@@ -80,7 +81,7 @@ def test_qrl_losses_hand_computed():
     d_pos = jnp.array([0.5, 1.5, 3.0])  # relu(d - 1)^2 = 0, 0.25, 4
     d_goal = jnp.array([10.0, 60.0, 50.0])
     lam = jnp.array(2.0)
-    loss, info = qm.qrl_loss(d_pos, d_goal, lam, epsilon=0.25, offset=50.0, scale=0.01)
+    loss, info = losses.qrl_loss(d_pos, d_goal, lam, epsilon=0.25, offset=50.0, scale=0.01)
     close = np.array([0.0, 0.25, 4.0]) - 0.0625
     push = np.log1p(np.exp(0.01 * (50.0 - np.array([10.0, 60.0, 50.0])))) / 0.01
     # Mean over the batch of lam * close + push.
@@ -88,15 +89,15 @@ def test_qrl_losses_hand_computed():
     np.testing.assert_allclose(float(info['qrl/push']), push.mean(), rtol=1e-5)
     np.testing.assert_allclose(float(info['qrl/close']), close.mean(), rtol=1e-5)
     # lambda's loss: -lam * mean(close); its gradient ascends on the violation: -mean(close) < 0 here
-    lam_loss, lam_info = qm.lambda_loss(d_pos, lam, 0.25)
+    lam_loss, lam_info = losses.lambda_loss(d_pos, lam, 0.25)
     np.testing.assert_allclose(float(lam_loss), -2.0 * close.mean(), rtol=1e-5)
     np.testing.assert_allclose(float(lam_info['lambda/violation']), close.mean(), rtol=1e-5)
-    g = jax.grad(lambda l: qm.lambda_loss(d_pos, l, 0.25)[0])(lam)
+    g = jax.grad(lambda l: losses.lambda_loss(d_pos, l, 0.25)[0])(lam)
     np.testing.assert_allclose(float(g), -close.mean(), rtol=1e-5)
     # no gradient reaches the distances through lambda's loss, nor lambda through the quasimetric's
-    assert float(jnp.abs(jax.grad(lambda dp: qm.lambda_loss(dp, lam, 0.25)[0])(d_pos)).sum()) == 0.0
-    assert float(jax.grad(lambda l: qm.qrl_loss(d_pos, d_goal, l, 0.25, 50.0, 0.01)[0])(lam)) == 0.0
-    gd = jax.grad(lambda dg: qm.qrl_loss(d_pos, dg, lam, 0.25, 50.0, 0.01)[0])(d_goal)
+    assert float(jnp.abs(jax.grad(lambda dp: losses.lambda_loss(dp, lam, 0.25)[0])(d_pos)).sum()) == 0.0
+    assert float(jax.grad(lambda l: losses.qrl_loss(d_pos, d_goal, l, 0.25, 50.0, 0.01)[0])(lam)) == 0.0
+    gd = jax.grad(lambda dg: losses.qrl_loss(d_pos, dg, lam, 0.25, 50.0, 0.01)[0])(d_goal)
     assert np.all(np.asarray(gd) < 0)  # push decreases as d_goal grows
 
 

@@ -28,7 +28,8 @@ from aqm_mjx.envs import parse_name
 from aqm_mjx.interface import Agent
 from aqm_mjx.learn import objectives, policy
 from aqm_mjx.learn.learner import Learner, LoopConfig, option
-from aqm_mjx.learn.quasimetric import INITS, IQE, lambda_loss, qrl_loss
+from aqm_mjx.learn.losses import lambda_loss, qrl_loss
+from aqm_mjx.learn.quasimetric import INITS, IQE
 
 QRL_VARIANTS = ('paper', 'ogbench')
 POLICY_GOALS = ('trajectory', 'random')

@@ -1,6 +1,9 @@
-"""The baselines' losses as pure functions of network outputs (OGBench's ``impls/agents`` and SAW's
-``impls/agents/saw.py`` were read for their definitions; none of their code is here). Each returns
-``(loss, info)`` with namespaced info keys; the tests recompute every one by hand on tiny inputs.
+"""Every method's losses as pure functions of network outputs: AQM's (the paper's QRL objective and
+multiplier, Q-AWR, Q-SAW) and the baselines' (OGBench's ``impls/agents`` and SAW's
+``impls/agents/saw.py`` were read for their definitions; none of their code is here). The weighted
+policy losses are shared: Q-AWR and every AWR actor are :func:`awr_loss`, Q-SAW and SAW's bootstrap
+term :func:`weighted_kl_loss`. The baselines' return ``(loss, info)`` with namespaced info keys; the
+tests recompute every one by hand on tiny inputs.
 
 Value conventions (OGBench's ``gc_negative``): reward -1 per step and 0 at the goal, mask 0 at the
 goal, so ``V(s, g)`` is about minus the discounted steps to ``g``. Two-head ensembles have a leading
@@ -9,11 +12,36 @@ goal, so ``V(s, g)`` is about minus the discounted steps to ``g``. Two-head ense
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import optax
 
-from aqm_mjx.learn.objectives import advantage_weight
+
+# ------------------------------------------------------------------------------ weighted policies
+def advantage_weight(adv: jax.Array, temperature: float, clip: float) -> jax.Array:
+    """``min(exp(temperature * adv), clip)``, computed without overflow."""
+    return jnp.exp(jnp.minimum(temperature * adv, math.log(clip)))
+
+
+def awr_loss(logp: jax.Array, adv: jax.Array, temperature: float, clip: float):
+    """Advantage-weighted regression (the paper's Q-AWR, eq. 5; OGBench's AWR actors):
+    ``-mean(w * logp)`` with ``w = min(exp(temperature * adv), clip)`` held fixed; ``logp, adv [B]``.
+    Returns ``(loss, weights [B])``."""
+    w = advantage_weight(jax.lax.stop_gradient(adv), temperature, clip)
+    return -jnp.mean(w * logp), w
+
+
+def weighted_kl_loss(divergence: jax.Array, adv: jax.Array, temperature: float, clip: float):
+    """Advantage-weighted distillation (the paper's Q-SAW, eq. 6; SAW's bootstrap term):
+    ``mean(w * divergence)`` with ``w`` as in :func:`awr_loss`; ``divergence, adv [B]``.
+    Returns ``(loss, weights [B])``."""
+    w = advantage_weight(jax.lax.stop_gradient(adv), temperature, clip)
+    return jnp.mean(w * divergence), w
+
+
+# -------------------------------------------------------------------------------------- baselines
 
 
 def expectile_loss(adv: jax.Array, diff: jax.Array, expectile: float) -> jax.Array:
@@ -58,8 +86,7 @@ def iql_critic_loss(q: jax.Array, next_v: jax.Array, rewards: jax.Array, masks: 
 
 def awr_actor_loss(log_prob: jax.Array, adv: jax.Array, alpha: float, clip: float = 100.0, prefix: str = 'actor'):
     """AWR: ``-mean(min(exp(alpha * adv), clip) * log_prob)``, weights held fixed; ``log_prob, adv [B]``."""
-    w = advantage_weight(jax.lax.stop_gradient(adv), alpha, clip)
-    loss = -jnp.mean(w * log_prob)
+    loss, w = awr_loss(log_prob, adv, alpha, clip)
     return loss, {f'{prefix}/loss': loss, f'{prefix}/adv_mean': jnp.mean(adv), f'{prefix}/weight_mean': jnp.mean(w),
                   f'{prefix}/log_prob': jnp.mean(log_prob)}
 
@@ -127,7 +154,42 @@ def waypoint_loss(mean_main: jax.Array, mean_sub: jax.Array, adv: jax.Array, alp
     With unit std this is twice ``KL(pi_sub || pi_main)``; SAW's reference writes it this way and we
     keep its scale. ``mean_* [B, A]``, ``adv [B]`` = V(w, g) - V(s, g).
     """
-    w = advantage_weight(jax.lax.stop_gradient(adv), alpha, clip)
     sq = jnp.sum(jnp.square(mean_main - jax.lax.stop_gradient(mean_sub)), axis=-1)
-    loss = jnp.mean(w * sq)
+    loss, _ = weighted_kl_loss(sq, adv, alpha, clip)
     return loss, {'waypoint/loss': loss, 'waypoint/kl': jnp.mean(sq), 'waypoint/adv_mean': jnp.mean(adv)}
+
+
+# -------------------------------------------------------------------- AQM's quasimetric (QRL)
+def push_term(d: jax.Array, offset: float, scale: float) -> jax.Array:
+    """``-omega(d) = softplus(scale * (offset - d)) / scale`` (paper eq. 4 and Appendix 10)."""
+    return jax.nn.softplus(scale * (offset - d)) / scale
+
+
+def constraint_violation(d_pos: jax.Array, epsilon: float) -> jax.Array:
+    """``relu(d(s, s') - 1)^2 - epsilon^2`` per transition: ``[B] -> [B]`` (<= 0 where it holds on average)."""
+    return jnp.square(jax.nn.relu(d_pos - 1.0)) - epsilon ** 2
+
+
+def qrl_loss(d_pos: jax.Array, d_goal: jax.Array, lam: jax.Array, epsilon: float, offset: float, scale: float):
+    """The quasimetric's QRL objective (paper eq. 3-4, Algorithm 1 lines 4-8).
+
+    Args:
+        d_pos: ``[B]`` d(s, s') on transitions; d_goal: ``[B]`` d(s, g) on sampled goals.
+        lam: the Lagrange multiplier (>= 0), held fixed here.
+        epsilon: slack of the local constraint; offset, scale: m and s of omega (Table 5).
+    Returns:
+        ``(mean(stop_grad(lam) * close + push), info)`` with ``close`` from :func:`constraint_violation`.
+    """
+    close = constraint_violation(d_pos, epsilon)
+    push = push_term(d_goal, offset, scale)
+    loss = jnp.mean(jax.lax.stop_gradient(lam) * close + push)
+    info = {'qrl/close': jnp.mean(close), 'qrl/push': jnp.mean(push), 'qrl/lambda': lam,
+            'qrl/d_pos_mean': jnp.mean(d_pos), 'qrl/d_goal_mean': jnp.mean(d_goal)}
+    return loss, info
+
+
+def lambda_loss(d_pos: jax.Array, lam: jax.Array, epsilon: float):
+    """The multiplier's objective (Algorithm 1 lines 9-10): ``-lam * stop_grad(mean(close))``, whose
+    gradient ascends on the constraint violation. ``d_pos [B]``. Returns ``(loss, info)``."""
+    violation = jax.lax.stop_gradient(jnp.mean(constraint_violation(d_pos, epsilon)))
+    return -lam * violation, {'lambda/violation': violation}

@@ -1,7 +1,9 @@
 """AQM's policy objectives (paper section 4.4, eq. 5-6, Table 4), each ``(loss, info)``.
 
 All hold the quasimetric fixed: the advantages come from distances computed outside the policy's
-gradient, and the weights ``min(exp(temperature * advantage), clip)`` are stop-gradient.
+gradient, and the weights ``min(exp(temperature * advantage), clip)`` are stop-gradient. The losses
+are the shared library's (:mod:`aqm_mjx.learn.losses`: ``awr_loss``, ``weighted_kl_loss``), the same
+that the baselines' AWR actors and SAW's bootstrap term use.
 
 - ``saw``: Q-AWR target policy on subgoals plus the Q-SAW main policy distilled from it;
 - ``awr``: Q-AWR on the goal (the paper's flat ablation);
@@ -15,30 +17,13 @@ gradient, and the weights ``min(exp(temperature * advantage), clip)`` are stop-g
 
 from __future__ import annotations
 
-import math
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
 
+from aqm_mjx.learn.losses import awr_loss, weighted_kl_loss
 from aqm_mjx.learn.policy import kl, log_prob
-
-
-def advantage_weight(adv: jax.Array, temperature: float, clip: float) -> jax.Array:
-    """``min(exp(temperature * adv), clip)``, computed without overflow."""
-    return jnp.exp(jnp.minimum(temperature * adv, math.log(clip)))
-
-
-def awr_loss(logp: jax.Array, adv: jax.Array, temperature: float, clip: float):
-    """Q-AWR (eq. 5): ``-mean(w * logp)``; ``logp, adv [B]``. Returns ``(loss, weights [B])``."""
-    w = advantage_weight(jax.lax.stop_gradient(adv), temperature, clip)
-    return -jnp.mean(w * logp), w
-
-
-def saw_loss(kl_main_target: jax.Array, adv: jax.Array, temperature: float, clip: float):
-    """Q-SAW (eq. 6): ``mean(w * KL)``; ``kl_main_target, adv [B]``. Returns ``(loss, weights [B])``."""
-    w = advantage_weight(jax.lax.stop_gradient(adv), temperature, clip)
-    return jnp.mean(w * kl_main_target), w
 
 
 def advantage_distances(dist: Callable, zs, zs1, zw, zg) -> dict:
@@ -62,7 +47,7 @@ def saw_objective(run: Callable, params: dict, batch, d: dict, temperature: floa
     mu_t, ls_t = run(params['target'], batch.subgoals)
     lt, wt = awr_loss(log_prob(mu_t, ls_t, batch.actions), d['sw'] - d['s1w'], temperature, clip)
     k = kl(mu_m, ls_m, jax.lax.stop_gradient(mu_t), jax.lax.stop_gradient(ls_t))
-    lm, wm = saw_loss(k, d['sg'] - d['wg'], temperature, clip)
+    lm, wm = weighted_kl_loss(k, d['sg'] - d['wg'], temperature, clip)
     info = {'policy/target_loss': lt, 'policy/target_weight': jnp.mean(wt), 'policy/kl': jnp.mean(k),
             'policy/target_mse': jnp.mean(jnp.square(mu_t - batch.actions))}
     return lt + lm, {**info, **_main_info(lm, wm, mu_m, batch.actions, clip)}

@@ -126,39 +126,3 @@ class IQE(nn.Module):
 
     def __call__(self, x, y):
         return self.distance(self.encode(x), self.encode(y))
-
-
-# ------------------------------------------------------------------------------------------ QRL
-def push_term(d: jax.Array, offset: float, scale: float) -> jax.Array:
-    """``-omega(d) = softplus(scale * (offset - d)) / scale`` (paper eq. 4 and Appendix 10)."""
-    return jax.nn.softplus(scale * (offset - d)) / scale
-
-
-def constraint_violation(d_pos: jax.Array, epsilon: float) -> jax.Array:
-    """``relu(d(s, s') - 1)^2 - epsilon^2`` per transition: ``[B] -> [B]`` (<= 0 where it holds on average)."""
-    return jnp.square(jax.nn.relu(d_pos - 1.0)) - epsilon ** 2
-
-
-def qrl_loss(d_pos: jax.Array, d_goal: jax.Array, lam: jax.Array, epsilon: float, offset: float, scale: float):
-    """The quasimetric's QRL objective (paper eq. 3-4, Algorithm 1 lines 4-8).
-
-    Args:
-        d_pos: ``[B]`` d(s, s') on transitions; d_goal: ``[B]`` d(s, g) on sampled goals.
-        lam: the Lagrange multiplier (>= 0), held fixed here.
-        epsilon: slack of the local constraint; offset, scale: m and s of omega (Table 5).
-    Returns:
-        ``(mean(stop_grad(lam) * close + push), info)`` with ``close`` from :func:`constraint_violation`.
-    """
-    close = constraint_violation(d_pos, epsilon)
-    push = push_term(d_goal, offset, scale)
-    loss = jnp.mean(jax.lax.stop_gradient(lam) * close + push)
-    info = {'qrl/close': jnp.mean(close), 'qrl/push': jnp.mean(push), 'qrl/lambda': lam,
-            'qrl/d_pos_mean': jnp.mean(d_pos), 'qrl/d_goal_mean': jnp.mean(d_goal)}
-    return loss, info
-
-
-def lambda_loss(d_pos: jax.Array, lam: jax.Array, epsilon: float):
-    """The multiplier's objective (Algorithm 1 lines 9-10): ``-lam * stop_grad(mean(close))``, whose
-    gradient ascends on the constraint violation. ``d_pos [B]``. Returns ``(loss, info)``."""
-    violation = jax.lax.stop_gradient(jnp.mean(constraint_violation(d_pos, epsilon)))
-    return -lam * violation, {'lambda/violation': violation}
