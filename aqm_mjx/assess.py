@@ -21,8 +21,8 @@ from aqm_mjx import envs, files, presets
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, report
-from aqm_mjx.evaluation.evaluate import calibration_pass, device_mesh, evaluate, make_program
-from aqm_mjx.evaluation.protocol import needs_calibration, plan_episodes
+from aqm_mjx.evaluation.evaluate import calibrate_then_evaluate, device_mesh, make_program
+from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import PRESETS, RunConfig, stage_keys
@@ -86,7 +86,7 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
     """The map from ``observations`` and the protocol for a trained method, then the report in
     ``out`` (``results.json`` and pictures). With ``cfg.protocol.calibrate`` ('fixed' or 'stall')
     a calibration pass on the training layout (``train_layout``, default the maze's) sets the AQM
-    row's budget first (:func:`~aqm_mjx.evaluation.evaluate.calibration_pass`; recorded as
+    row's budget first (:func:`~aqm_mjx.evaluation.evaluate.calibrate_then_evaluate`; recorded as
     ``calibration`` in ``results.json``). ``programs``: a dict that keeps compiled evaluation
     chunks across calls (several seeds of a method). Returns ``(Results, report dict)``."""
     agent = trained.agent
@@ -107,14 +107,9 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
     programs = {} if owned else programs
     program = _program(programs, trained, env, cfg, variants)
     try:
-        agent_cfg, cal, budgets = cfg.agent, None, None
-        if agent.plans and needs_calibration(cfg.protocol):
-            cal = calibration_pass(env, agent, graph, cfg.agent, cfg.protocol, k_eval, layout=train_layout,
-                                   program=program)
-            agent_cfg, budgets = dataclasses.replace(cfg.agent, kappa=cal['kappa'], patience=cal['patience']), cal['budgets']
-            log(calibration_line(cal, cfg.agent))
-        res = evaluate(env, agent, graph, agent_cfg, cfg.protocol, variants, key=k_eval, program=program,
-                       budgets=budgets)
+        res, cal = calibrate_then_evaluate(env, agent, graph, cfg.agent, cfg.protocol, variants, k_eval,
+                                           layout=train_layout, program=program,
+                                           on_calibrated=lambda c: log(calibration_line(c, cfg.agent)))
     finally:
         if owned:
             for p in programs.values():

@@ -28,7 +28,7 @@ import jax
 import numpy as np
 import pytest
 
-from aqm_mjx import assess, cli, envs, pipeline, run
+from aqm_mjx import cli, envs, pipeline, run
 from aqm_mjx.agent import oracle
 from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.data import dataset as ds_io
@@ -77,7 +77,7 @@ def run_three_paths(env_name, tmp, monkeypatch):
         caught.append(real(*a, **k))
         return caught[-1]
 
-    monkeypatch.setattr(assess, 'evaluate', capture)
+    monkeypatch.setattr(evaluation, 'evaluate', capture)  # calibrate_then_evaluate's evaluation (the last call)
     run_dir = os.path.join(tmp, 'run')
     run.run_stepwise(cfg, run_dir, dataset=path, log=lambda *_: None)
     stepwise = caught[-1]

@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional
 
 import jax
 import numpy as np
@@ -252,3 +252,25 @@ def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol
                 episodes=len(res.table.task), legs=int(c['legs']), edges=int(c['edges']), calibrated=bool(int(c['legs']) > 0), kappa=float(kappa), patience=float(patience),
                 kappa_edges=budgets['paper'][0], budgets=budgets,
                 ratio_q=np.asarray(c['ratio_q']).tolist(), stall_q=np.asarray(c['stall_q']).tolist())
+
+
+def calibrate_then_evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.ProtocolConfig,
+                            variants: Optional[dict], key: jax.Array, layout=None, program=None,
+                            mesh: Optional[Mesh] = None, progress: bool = True,
+                            on_calibrated: Optional[Callable] = None) -> tuple[Results, Optional[dict]]:
+    """The protocol as every host path runs it: the :func:`calibration_pass` first where the protocol
+    asks for one (an agent that plans; ``layout``: the training layout), its budgets then given to
+    the AQM row (``kappa``, ``patience``) and to the calibrated rows (``budgets``) of
+    :func:`evaluate` on ``variants``, on the same compiled ``program``. ``on_calibrated(cal)`` is
+    called between the two (a log line). Returns ``(Results, calibration dict or None)``; the one
+    program (:func:`aqm_mjx.pipeline.make_run`) does the same inside its jitted run."""
+    cal, budgets = None, None
+    if agent.plans and proto.needs_calibration(protocol):
+        cal = calibration_pass(env, agent, graph, cfg, protocol, key, layout=layout, mesh=mesh, progress=progress,
+                               program=program)
+        cfg, budgets = dataclasses.replace(cfg, kappa=cal['kappa'], patience=cal['patience']), cal['budgets']
+        if on_calibrated is not None:
+            on_calibrated(cal)
+    res = evaluate(env, agent, graph, cfg, protocol, variants, key=key, mesh=mesh, progress=progress,
+                   program=program, budgets=budgets)
+    return res, cal
