@@ -56,6 +56,11 @@ def preset_for_name(train_preset: str) -> str:
     return train_preset if train_preset in PRESETS else 'ci' if train_preset == 'tiny' else presets.DEFAULT
 
 
+def preset_for(trained: fit.Trained) -> str:
+    """:func:`preset_for_name` of a trained method's training preset."""
+    return preset_for_name(trained.config.preset)
+
+
 # ------------------------------------------------------------------------------ map + evaluation
 # room an evaluation's outputs need, reserved before its episodes (results.json and three pictures are
 # about 0.1 MiB; 20x that): a disk too full for them is refused up front, not after every episode ran

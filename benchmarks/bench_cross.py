@@ -35,7 +35,8 @@ from aqm_mjx import envs, files
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, stats
 from aqm_mjx.learn import fit
-from aqm_mjx.pipeline import PRESETS, RunConfig, stage_keys
+from aqm_mjx import presets
+from aqm_mjx.pipeline import RunConfig, stage_keys
 from aqm_mjx.assess import read_data
 from aqm_mjx.run import data_stage
 
@@ -51,7 +52,7 @@ def parse(argv=None):
     p.add_argument('--layouts', nargs='+', default=['base', 'close-3-3', 'close-6-2'],
                    help='training layouts, which are also the evaluation layouts')
     p.add_argument('--seeds', type=int, default=1, help='AQM seeds per training layout (vmapped)')
-    p.add_argument('--preset', default='cpu', choices=tuple(PRESETS))
+    p.add_argument('--preset', default=presets.DEFAULT, choices=presets.names())
     p.add_argument('--collect-episodes', type=int, default=100, help='navigate episodes per training layout')
     p.add_argument('--collect-batch', type=int, default=55)
     p.add_argument('--episodes', type=int, default=10, help='evaluation episodes per task, rule and layout')
