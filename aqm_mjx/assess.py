@@ -25,7 +25,7 @@ from aqm_mjx.evaluation.evaluate import calibrate_then_evaluate, device_mesh, ma
 from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit
 from aqm_mjx.mapping.build import trimmed_map
-from aqm_mjx.pipeline import PRESETS, RunConfig, stage_keys
+from aqm_mjx.pipeline import RunConfig, stage_keys
 
 
 def read_data(path: str, env) -> dict:
@@ -53,7 +53,7 @@ def variants_for(maze: str, shift: str) -> dict:
 def preset_for_name(train_preset: str) -> str:
     """The run preset whose map, agent and protocol defaults match a training preset (runs trained
     before the presets were renamed say 'tiny' for 'ci'; an unknown name gets the default preset)."""
-    return train_preset if train_preset in PRESETS else 'ci' if train_preset == 'tiny' else presets.DEFAULT
+    return train_preset if train_preset in presets.RUN else 'ci' if train_preset == 'tiny' else presets.DEFAULT
 
 
 def preset_for(trained: fit.Trained) -> str:

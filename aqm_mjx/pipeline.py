@@ -31,7 +31,6 @@ from aqm_mjx.learn import fit, methods
 from aqm_mjx.mapping.build import MapConfig, build_map
 
 SECTIONS = presets.SECTIONS  # the sections beside train, whose fields are command-line options
-PRESETS = presets.RUN  # every default of a run, once (aqm_mjx/presets.py)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from aqm_mjx import assess, cli, compare, envs, files, pipeline, run
+from aqm_mjx import assess, cli, compare, envs, files, pipeline, presets, run
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
 from aqm_mjx.evaluation import report, stats
@@ -176,8 +176,8 @@ def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(t
     # adding a method to the same folder trains and evaluates only the new one; a default changed in
     # between (here the ci preset's kappa) reaches the new method's row, and the finished row keeps
     # the config it was evaluated with
-    ci = dict(pipeline.PRESETS['ci'], agent=dict(pipeline.PRESETS['ci']['agent'], kappa=0.7))
-    monkeypatch.setitem(pipeline.PRESETS, 'ci', ci)
+    ci = dict(presets.RUN['ci'], agent=dict(presets.RUN['ci']['agent'], kappa=0.7))
+    monkeypatch.setitem(presets.RUN, 'ci', ci)
     logs = []
     second = compare.compare('pointmaze-medium', ['gcbc', 'gcivl'], 2, out, preset='ci', dataset=path, overrides=over,
                              log=logs.append)

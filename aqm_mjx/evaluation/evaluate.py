@@ -249,7 +249,8 @@ def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol
     kappa, patience = calibration.budget(c, rule, cfg.kappa, cfg.patience)
     budgets = {k: (float(a), float(b)) for k, (a, b) in calibration.row_budgets(c, cfg.kappa, cfg.patience).items()}
     return dict(rule=rule, false_alarm=protocol.false_alarm, stall_scale=protocol.stall_scale,
-                episodes=len(res.table.task), legs=int(c['legs']), edges=int(c['edges']), calibrated=bool(int(c['legs']) > 0), kappa=float(kappa), patience=float(patience),
+                episodes=len(res.table.task), legs=int(c['legs']), edges=int(c['edges']),
+                calibrated=bool(int(c['legs']) > 0), kappa=float(kappa), patience=float(patience),
                 kappa_edges=budgets['paper'][0], budgets=budgets,
                 ratio_q=np.asarray(c['ratio_q']).tolist(), stall_q=np.asarray(c['stall_q']).tolist())
 
