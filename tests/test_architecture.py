@@ -122,6 +122,28 @@ def test_registered_methods_build_agents(name):
         methods.get('ppo')
 
 
+def test_a_method_is_one_file_the_registry_discovers(tmp_path, monkeypatch):
+    from aqm_mjx.learn import methods
+    from aqm_mjx.learn.baselines import gcbc
+
+    # every method file of the package is registered, each under the names its METHODS declare
+    assert set(methods.names()) == {'aqm', 'aqm-awr', 'aqm-bc', 'crl', 'gcbc', 'gciql', 'gcivl', 'hiql', 'qrl', 'saw'}
+    assert methods.get('hiql').style_defaults['explore']['high_alpha'] == 10.0
+    # a new file declaring METHODS is all a method needs
+    (tmp_path / 'my_method.py').write_text(
+        'from aqm_mjx.learn.baselines import base, gcbc\n'
+        "METHODS = (base.Method('gcbc-copy', gcbc.GCBCConfig, gcbc.make, summary='a copy'),)\n")
+    (tmp_path / 'not_a_method.py').write_text('X = 1\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(methods, 'METHODS', dict(methods.METHODS))
+    methods.discover(('my_method',))
+    assert methods.get('gcbc-copy').make is gcbc.make and methods.get('gcbc-copy').preset('ci').steps == 200
+    with pytest.raises(ValueError, match='already registered'):
+        methods.discover(('my_method',))
+    with pytest.raises(ValueError, match='not_a_method declares no METHODS'):
+        methods.discover(('not_a_method',))
+
+
 def test_readme_names_every_module():
     """README's layout section has a line for every module, as ``stage/module.py``."""
     readme = (ROOT.parent / 'README.md').read_text()

@@ -50,6 +50,19 @@ def test_agent_switches_budgets_and_prunes_by_hand():
     assert int(b.pruned) == 0 and int(b.node) == 1
 
 
+def test_leg_kinds_and_the_two_budget_rules_by_hand():
+    prev = jnp.array([rules.START, 3, 3, rules.NO_LEG])
+    node = jnp.array([0, 5, -1, -1])
+    np.testing.assert_array_equal(rules.leg_kind(prev, node),
+                                  [rules.LEG_START, rules.LEG_EDGE, rules.LEG_GOAL, rules.LEG_NONE])
+    # (t, stall, budget): the paper's rule reads the steps on the leg, the stall rule the steps without progress
+    t, stall, budget = jnp.array([16, 16, 5]), jnp.array([0, 16, 5]), jnp.array([15.0, 15.0, 5.0])
+    np.testing.assert_array_equal(rules.fixed_overrun(t, stall, budget), [True, True, False])
+    np.testing.assert_array_equal(rules.stall_overrun(t, stall, budget), [False, True, False])
+    np.testing.assert_array_equal(rules.overrun(jnp.array([0.0, 15.0, 0.0]), t, stall, budget), [True, True, False])
+    np.testing.assert_array_equal(rules.overrun(jnp.array([15.0, 0.0, 5.0]), t, stall, budget), [False, True, False])
+
+
 def test_goal_and_start_legs_are_budgeted_by_hand():
     dist, g, cfg = _agent_step_case()  # z = 0, 10, 20 on a line, kappa 0.5, tau 6
     step = lambda a, x: rules.agent_step(dist, g, cfg, a, jnp.array([x]), 0.5)  # noqa: E731

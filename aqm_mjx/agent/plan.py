@@ -107,6 +107,29 @@ def floyd_warshall_batch(weights: jax.Array, chunk: int | None = None, with_next
     return out if with_next else (out, None)
 
 
+def replan_pending(w: jax.Array, dist: jax.Array, nxt: jax.Array, pending: jax.Array, slots: int = 8) -> tuple:
+    """All-pairs paths again for the graphs of a batch marked ``pending [B]`` (``w, dist, nxt [B, K, K]``):
+    ``(dist, nxt)`` with the pending graphs' entries recomputed from ``w``, the others as given.
+
+    The cost follows the number of pending graphs, not the batch: a ``lax.while_loop`` takes up to
+    ``slots`` of them per pass (gathered by index), runs Floyd-Warshall on those and writes the
+    results back; a batch with none pending costs one test. Results do not depend on ``slots``.
+    """
+    b = w.shape[0]
+    slots = max(1, min(int(slots), b))
+
+    def one_pass(c):
+        d, n, pending = c
+        idx = jnp.nonzero(pending, size=slots, fill_value=b)[0]  # b: an empty slot (dropped on write)
+        dd, nn = floyd_warshall_batch(w[jnp.minimum(idx, b - 1)], chunk=slots)
+        d = d.at[idx].set(dd, mode='drop')
+        n = n.at[idx].set(nn.astype(jnp.int32), mode='drop')
+        return d, n, pending.at[idx].set(False, mode='drop')
+
+    d, n, _ = jax.lax.while_loop(lambda c: jnp.any(c[2]), one_pass, (dist, nxt, pending))
+    return d, n
+
+
 @struct.dataclass
 class Plan:
     """A plan s -> z_first -> ... -> z_last -> g (or s -> g directly).

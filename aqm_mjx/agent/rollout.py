@@ -111,15 +111,16 @@ def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
         d = lambda x, y: agent.dist(aux, x, y)  # noqa: E731
         kappa, patience, edges = inputs.kappa, inputs.patience, inputs.edges_only
         enc = jax.vmap(lambda o: agent.encode(aux, o))
-        # PLAN: switch, time and prune per environment, then replan where an edge was cut; an
-        # environment whose episode is done (at the goal, or at its limit) keeps its agent as it
-        # was, so that nothing is timed, cut or logged after the end
+        # FOLLOW, BUDGET, PRUNE per environment (rules.agent_step); an environment whose episode is
+        # done (at the goal, or at its limit) keeps its agent as it was, so that nothing is timed, cut
+        # or logged after the end
         if cfg.cut_slack:  # EXTENSION: parallel cuts, each row at its own slack
             stepped = jax.vmap(lambda a, s, kp, p, e, c: agent_step(d, graph, cfg, a, s, kp, p, e, c))(
                 agents, enc(obs), kappa, patience, edges, inputs.cut_slack)
         else:  # no row cuts in parallel (every row's slack is 0): the neighbourhoods are not computed
             stepped = jax.vmap(lambda a, s, kp, p, e: agent_step(d, graph, cfg, a, s, kp, p, e, 0.0))(
                 agents, enc(obs), kappa, patience, edges)
+        # REPLAN where an edge was cut (batched over those environments), then take the next hop
         new = replan(freeze(~done, agents, stepped), slots)
         if cfg.keep_route:  # EXTENSION: a cut that leaves no route to the goal is not made
             new = jax.vmap(keep_last_route)(agents, new)

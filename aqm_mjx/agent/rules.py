@@ -2,6 +2,20 @@
 keypoint graph, switch subgoals, keep a time budget on every leg and, on overrun, mark the leg
 untraversable in the environment's own copy of the graph and replan (paper section 4.5).
 
+One control step (:func:`agent_step`, then :func:`replan` and :func:`redirect`; the rollout's
+``make_decide`` calls them in this order) runs the paper's phases:
+
+1. follow the leg: the target keypoint is reached within ``switch_radius`` (:func:`_follow`);
+2. check the budget: the leg's clocks (:func:`_clock`) under the row's rule (:func:`overrun`:
+   :func:`fixed_overrun`, the paper's, or :func:`stall_overrun`);
+3. prune: the overrun leg goes to ``inf`` in this environment's graph (:func:`_prune`);
+4. replan: Floyd-Warshall again for the environments that pruned (:func:`replan`, batched), and the
+   next hop from the pruned leg's start (:func:`redirect`).
+
+The leg an agent is on has a kind (:func:`leg_kind`: :data:`LEG_START`, :data:`LEG_EDGE`,
+:data:`LEG_GOAL`, :data:`LEG_NONE`); the extensions beyond the paper (parallel cuts, the leg and
+cut logs, keep_route) sit in blocks marked EXTENSION.
+
 - Start: attach the state and the goal to the graph (:func:`aqm_mjx.agent.plan.attach`, radius
   ``graph.tau``) and take the best plan s -> z_first -> ... -> z_last -> g (or go straight to g).
 - Subgoal switching: the target keypoint z_j counts as reached when ``d(s, z_j) <= switch_radius``.
@@ -24,9 +38,9 @@ untraversable in the environment's own copy of the graph and replan (paper secti
   side cannot be reached from z_i's in the leg's time: edges between the same two neighbourhoods
   cross the same blockage. Without them a closed corridor crossed by k such edges costs k overruns,
   one budget each (RESULTS.md, section 9).
-- Leg log: every leg that ends at its keypoint is recorded as (d(from, to), steps taken, longest
-  stall, kind) in ``legs`` (kind :data:`LEG_START`, :data:`LEG_EDGE` or :data:`LEG_GOAL`) (the first :data:`MAX_LEGS`; ``n_legs`` counts all), the measurement that
-  calibrates either rule (:mod:`aqm_mjx.evaluation.calibration`).
+- Leg log: every budgeted leg that ends at its keypoint is recorded as (d(from, to), steps taken,
+  longest stall, kind) in ``legs`` (the first :data:`MAX_LEGS`; ``n_legs`` counts all), the measurement
+  that calibrates either rule (:mod:`aqm_mjx.evaluation.calibration`).
 - ``use_graph=False`` is the flat policy: the target is always the goal.
 """
 
@@ -49,6 +63,7 @@ from aqm_mjx.mapping.graph import Graph
 MAX_CUTS = 16  # pruned edges remembered per environment for plots (all are counted in ``pruned``)
 MAX_LEGS = 32  # completed legs logged per environment (all are counted in ``n_legs``)
 LEG_START, LEG_EDGE, LEG_GOAL = 0, 1, 2  # the kinds of a leg (4th column of the leg log)
+LEG_NONE = -1  # not a budgeted leg
 LEG_FIELDS = 4  # (d(from, to), steps, longest stall, kind)
 
 
@@ -101,7 +116,9 @@ class AgentConfig:
         return self.replan_slots or (8 if jax.default_backend() == 'cpu' else 256)
 
 
-START = -2  # AgentState.prev on the start leg (s -> z_1), whose budget is on the attachment edge
+# AgentState.prev: where the budgeted leg starts (a keypoint index >= 0, or one of these)
+START = -2  # the start leg s -> z_1, whose budget is on the attachment edge
+NO_LEG = -1  # no budgeted leg (the flat policy, no path left, or back at z_i after a cut until redirect)
 
 
 @struct.dataclass
@@ -184,7 +201,7 @@ def _entry(a_dist: jax.Array, from_s: jax.Array, to_g: jax.Array, direct: jax.Ar
     first = planning.plan(a_dist, from_s, to_g, direct).first
     on_graph = first >= 0
     leg_d = jnp.where(on_graph, from_s[jnp.maximum(first, 0)], jnp.inf).astype(jnp.float32)
-    return (first.astype(jnp.int32), jnp.where(on_graph, START, -1).astype(jnp.int32),
+    return (first.astype(jnp.int32), jnp.where(on_graph, START, NO_LEG).astype(jnp.int32),
             leg_budget(leg_d, kappa, patience, False, edges_only), leg_d)
 
 
@@ -197,7 +214,7 @@ def agent_init(dist: Callable, graph: Graph, s: jax.Array, g: jax.Array, kappa: 
     from_s, to_g, direct = planning.attach(dist, graph.z, graph.mask, s, g, graph.tau)
     node, prev, budget, leg_d = _entry(d_kk, from_s, to_g, direct, kappa, patience, edges_only)
     node = jnp.where(use_graph, node, -1).astype(jnp.int32)
-    prev = jnp.where(use_graph, prev, -1).astype(jnp.int32)
+    prev = jnp.where(use_graph, prev, NO_LEG).astype(jnp.int32)
     budget = jnp.where(use_graph, budget, jnp.inf).astype(jnp.float32)
     leg_d = jnp.where(use_graph, leg_d, jnp.inf).astype(jnp.float32)
     k = graph.w.shape[0]
@@ -218,69 +235,127 @@ def _next_leg(a: AgentState, k: jax.Array, kappa: jax.Array, patience: jax.Array
     stuck = ~jnp.isfinite(total[last])
     hop = jnp.where(stuck, -1, planning.next_subgoal(a.nxt, k, last)).astype(jnp.int32)
     leg = jnp.where(stuck, jnp.inf, jnp.where(hop >= 0, a.w[k, jnp.maximum(hop, 0)], a.to_g[k])).astype(jnp.float32)
-    return hop, jnp.where(stuck, -1, k).astype(jnp.int32), leg_budget(leg, kappa, patience, hop >= 0, edges_only), leg
+    return hop, jnp.where(stuck, NO_LEG, k).astype(jnp.int32), leg_budget(leg, kappa, patience, hop >= 0, edges_only), leg
+
+
+def leg_kind(prev: jax.Array, node: jax.Array) -> jax.Array:
+    """The kind of the leg an agent is on: :data:`LEG_START` (s -> z_1), :data:`LEG_EDGE` (z_i ->
+    z_j), :data:`LEG_GOAL` (z_n -> g) or :data:`LEG_NONE` (unbudgeted: the flat policy, or no path
+    left). int32, any shape."""
+    kind = jnp.where(prev == START, LEG_START, jnp.where(node >= 0, LEG_EDGE, LEG_GOAL))
+    return jnp.where(prev == NO_LEG, LEG_NONE, kind).astype(jnp.int32)
+
+
+# The two budget rules (paper section 4.5 and its stall variant). Each row of a batch carries its own
+# rule (``patience`` 0 or > 0), so both are evaluated (two scalar tests) and the row's is taken.
+def fixed_overrun(t: jax.Array, stall: jax.Array, budget: jax.Array) -> jax.Array:
+    """The paper's rule: the leg has taken more than its ``(1 + kappa) d`` steps."""
+    return t > budget
+
+
+def stall_overrun(t: jax.Array, stall: jax.Array, budget: jax.Array) -> jax.Array:
+    """The stall rule: more than ``patience`` consecutive steps without progress towards the target."""
+    return stall > budget
+
+
+def overrun(patience: jax.Array, t: jax.Array, stall: jax.Array, budget: jax.Array) -> jax.Array:
+    """bool: the leg's budget is spent under the row's rule (``patience`` > 0: the stall rule)."""
+    return jnp.where(patience > 0, stall_overrun(t, stall, budget), fixed_overrun(t, stall, budget))
+
+
+def _follow(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array) -> tuple:
+    """FOLLOW THE LEG: ``(reached, d_target)``: whether the target keypoint is within the switch
+    radius, and ``d(s, target)`` (the target is the goal when ``node`` is -1)."""
+    d_node = dist(s, graph.z[jnp.maximum(a.node, 0)])
+    reached = (a.node >= 0) & (d_node <= cfg.switch_radius)
+    return reached, jnp.where(a.node >= 0, d_node, dist(s, a.goal))
+
+
+def _clock(a: AgentState, d_target: jax.Array, progress: float) -> tuple:
+    """The leg's clocks after this step: ``(t, best, stall, max_stall)``: steps on the leg, the best
+    ``d(s, target)`` that counted as progress (a fall of more than ``progress``), the current and the
+    longest run of steps without progress."""
+    progressed = d_target < a.best - progress
+    stall = jnp.where(progressed, 0, a.stall + 1).astype(jnp.int32)
+    return a.t_edge + 1, jnp.where(progressed, d_target, a.best), stall, jnp.maximum(a.max_stall, stall)
+
+
+def _prune(a: AgentState, over_kind: jax.Array, cut_slack, cut_into: bool) -> tuple:
+    """PRUNE the overrun leg in this environment's graph: ``(w, to_g, banned, cut)``. ``over_kind`` is
+    the kind of the leg that overran (:data:`LEG_NONE`: none did). A keypoint edge z_i -> z_j goes to
+    ``inf`` in ``w`` (with ``cut_slack`` > 0 also its parallels, :func:`parallel_edges`; ``cut [K, K]``
+    marks what was cut), a goal leg cuts z_i's goal attachment, a start leg bans its entry keypoint."""
+    i, j = jnp.maximum(a.prev, 0), jnp.maximum(a.node, 0)
+    cut = parallel_edges(a.dist, a.w, i, j, a.leg_d, cut_slack, cut_into) & (over_kind == LEG_EDGE)
+    to_g = jnp.where(over_kind == LEG_GOAL, a.to_g.at[i].set(jnp.inf), a.to_g)
+    banned = a.banned | ((over_kind == LEG_START) & (jnp.arange(a.banned.shape[0]) == j))
+    return jnp.where(cut, jnp.inf, a.w), to_g, banned, cut
+
+
+def _log_leg(a: AgentState, reached: jax.Array, t: jax.Array, max_stall: jax.Array, kind: jax.Array) -> tuple:
+    """EXTENSION (calibration): ``(legs, n_legs)`` with the leg that ends here appended as (d(from, to),
+    steps, longest stall, kind) when it was budgeted; rows past :data:`MAX_LEGS` are dropped."""
+    logged = reached & (kind != LEG_NONE)
+    row = jnp.stack([a.leg_d, t.astype(jnp.float32), max_stall.astype(jnp.float32), kind.astype(jnp.float32)])
+    return a.legs.at[jnp.where(logged, a.n_legs, MAX_LEGS)].set(row, mode='drop'), a.n_legs + logged.astype(jnp.int32)
+
+
+def _log_cut(a: AgentState, edge_over: jax.Array) -> jax.Array:
+    """EXTENSION (plots): ``cuts`` with the overrun keypoint edge (i, j) appended, the first :data:`MAX_CUTS`."""
+    used = jnp.sum(a.cuts[:, 0] >= 0)
+    slot = jnp.where(edge_over & (used < MAX_CUTS), used, MAX_CUTS)  # out of range: dropped
+    return a.cuts.at[slot].set(jnp.stack([jnp.maximum(a.prev, 0), jnp.maximum(a.node, 0)]).astype(jnp.int32),
+                               mode='drop')
 
 
 def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
                kappa: jax.Array, patience: jax.Array = 0.0, edges_only: jax.Array = False,
                cut_slack=None) -> AgentState:
-    """Update one environment's target for the current latent ``s [L]`` (switch, time, prune, log).
+    """One environment's control step of the agent for the current latent ``s [L]``, in the paper's
+    phases: follow the leg, check its budget, prune an overrun leg, take the next leg.
 
-    On a keypoint edge or goal leg overrun the target points back at the leg's start keypoint,
-    unbudgeted; :func:`replan` and :func:`redirect` then choose the next hop from there. On a start
-    leg overrun the agent re-attaches from ``s`` without the banned entries. ``patience`` > 0 runs
-    the stall rule (``cfg.progress`` is its progress threshold); ``edges_only`` budgets keypoint
-    edges alone; ``cut_slack`` (default ``cfg.cut_slack``) sets the parallel cuts.
+    After a keypoint edge or goal leg overrun the target points back at the leg's start keypoint,
+    unbudgeted, with ``needs_replan`` set: :func:`replan` (batched over the environments that
+    pruned) and :func:`redirect` then choose the next hop from there. After a start leg overrun the
+    agent re-attaches from ``s`` without the banned entries. ``patience`` > 0 runs the stall rule
+    (``cfg.progress`` is its progress threshold); ``edges_only`` budgets keypoint edges alone;
+    ``cut_slack`` (default ``cfg.cut_slack``) sets the parallel cuts.
     """
     cut_slack = cfg.cut_slack if cut_slack is None else cut_slack
-    k = jnp.maximum(a.node, 0)
-    d_node = dist(s, graph.z[k])
-    reached = (a.node >= 0) & (d_node <= cfg.switch_radius)
-    # SWITCH: from the reached keypoint, the next hop of the best path
-    hop, hop_prev, hop_budget, hop_d = _next_leg(a, k, kappa, patience, edges_only)
-    # PROGRESS on the leg (the stall rule's clock; logged for both rules)
-    d_target = jnp.where(a.node >= 0, d_node, dist(s, a.goal))
-    progressed = d_target < a.best - cfg.progress
-    best = jnp.where(progressed, d_target, a.best)
-    stall = jnp.where(progressed, 0, a.stall + 1).astype(jnp.int32)
-    max_stall = jnp.maximum(a.max_stall, stall)
-    # OVERRUN: mark the leg untraversable
-    t = a.t_edge + 1
-    over = ~reached & jnp.where(patience > 0, stall > a.budget, t > a.budget)
-    # LOG the leg that ends here
-    logged = reached & (a.prev != -1)
-    kind = jnp.where(a.prev == START, LEG_START, jnp.where(a.node >= 0, LEG_EDGE, LEG_GOAL))
-    row = jnp.stack([a.leg_d, t.astype(jnp.float32), max_stall.astype(jnp.float32), kind.astype(jnp.float32)])
-    legs = a.legs.at[jnp.where(logged, a.n_legs, MAX_LEGS)].set(row, mode='drop')
-    edge_over = over & (a.prev >= 0) & (a.node >= 0)
-    goal_over = over & (a.prev >= 0) & (a.node < 0)
-    start_over = over & (a.prev == START) & (a.node >= 0)
-    i, j = jnp.maximum(a.prev, 0), k
-    cut = parallel_edges(a.dist, a.w, i, j, a.leg_d, cut_slack, cfg.cut_into) & edge_over
-    w = jnp.where(cut, jnp.inf, a.w)
-    to_g = jnp.where(goal_over, a.to_g.at[i].set(jnp.inf), a.to_g)
-    banned = a.banned | (start_over & (jnp.arange(a.banned.shape[0]) == k))
-    used = jnp.sum(a.cuts[:, 0] >= 0)  # keypoint edges cut so far (pruned also counts attachments)
-    slot = jnp.where(edge_over & (used < MAX_CUTS), used, MAX_CUTS)  # out of range: dropped
-    cuts = a.cuts.at[slot].set(jnp.stack([i, j]).astype(jnp.int32), mode='drop')
-    # re-attach from here (used on a start-leg overrun only; 2 K + 2 distances per step)
+    kind = leg_kind(a.prev, a.node)
+    # 1. FOLLOW THE LEG: a reached keypoint hands over to the next hop of the best path from it
+    reached, d_target = _follow(dist, graph, cfg, a, s)
+    hop, hop_prev, hop_budget, hop_d = _next_leg(a, jnp.maximum(a.node, 0), kappa, patience, edges_only)
+    # 2. CHECK THE BUDGET under the row's rule
+    t, best, stall, max_stall = _clock(a, d_target, cfg.progress)
+    over = ~reached & overrun(patience, t, stall, a.budget)
+    over_kind = jnp.where(over, kind, LEG_NONE)
+    # 3. PRUNE the overrun leg in this environment's graph
+    w, to_g, banned, cut = _prune(a, over_kind, cut_slack, cfg.cut_into)
+    # 4. NEXT LEG: after an edge or goal-leg cut, back at z_i to replan (redirect); after a start-leg
+    # cut, re-attach from here (2 K + 2 distances per step, used on that overrun only)
     from_s = planning.attach_start(dist, graph.z, graph.mask & ~banned, s, graph.tau)
     direct = planning.direct_edge(dist, s, a.goal, graph.tau)
     e_node, e_prev, e_budget, e_d = _entry(a.dist, from_s, to_g, direct, kappa, patience, edges_only)
-    back = edge_over | goal_over
-    node = jnp.where(reached, hop, jnp.where(back, a.prev, jnp.where(start_over, e_node, a.node)))
-    prev = jnp.where(reached, hop_prev, jnp.where(back, -1, jnp.where(start_over, e_prev, a.prev)))
-    budget = jnp.where(reached, hop_budget, jnp.where(back, jnp.inf, jnp.where(start_over, e_budget, a.budget)))
-    leg_d = jnp.where(reached, hop_d, jnp.where(back, jnp.inf, jnp.where(start_over, e_d, a.leg_d)))
+    back = (over_kind == LEG_EDGE) | (over_kind == LEG_GOAL)
+    re_enter = over_kind == LEG_START
+    pick = lambda on_hop, on_back, on_entry, keep: jnp.where(  # noqa: E731
+        reached, on_hop, jnp.where(back, on_back, jnp.where(re_enter, on_entry, keep)))
+    node = pick(hop, a.prev, e_node, a.node)
+    prev = pick(hop_prev, NO_LEG, e_prev, a.prev)
+    budget = pick(hop_budget, jnp.inf, e_budget, a.budget)
+    leg_d = pick(hop_d, jnp.inf, e_d, a.leg_d)
     new_leg = reached | over
+    # EXTENSION: the leg log (calibration) and the cut log (plots)
+    legs, n_legs = _log_leg(a, reached, t, max_stall, kind)
+    cuts = _log_cut(a, over_kind == LEG_EDGE)
     return a.replace(w=w, to_g=to_g, banned=banned, cuts=cuts, node=node.astype(jnp.int32),
                      prev=prev.astype(jnp.int32), t_edge=jnp.where(new_leg, 0, t).astype(jnp.int32),
                      budget=budget.astype(jnp.float32), leg_d=leg_d.astype(jnp.float32),
                      best=jnp.where(new_leg, jnp.inf, best).astype(jnp.float32),
                      stall=jnp.where(new_leg, 0, stall).astype(jnp.int32),
                      max_stall=jnp.where(new_leg, 0, max_stall).astype(jnp.int32),
-                     legs=legs, n_legs=a.n_legs + logged.astype(jnp.int32),
-                     pruned=a.pruned + over.astype(jnp.int32),
+                     legs=legs, n_legs=n_legs, pruned=a.pruned + over.astype(jnp.int32),
                      removed=a.removed + jnp.sum(cut & jnp.isfinite(a.w)).astype(jnp.int32), needs_replan=back)
 
 
@@ -318,25 +393,8 @@ def keep_last_route(old: AgentState, new: AgentState) -> AgentState:
 
 
 def replan(a: AgentState, slots: int = 8) -> AgentState:
-    """Recompute distances and next hops of the agents of a batch that pruned an edge this step.
-
-    The cost follows the number of pruning environments, not the batch: a ``lax.while_loop`` takes
-    up to ``slots`` of them per pass (gathered by index), runs Floyd-Warshall on those and writes
-    the results back; a step without overruns costs one test. Results do not depend on ``slots``.
-    """
-    b = a.w.shape[0]
-    slots = max(1, min(int(slots), b))
-
-    def one_pass(c):
-        d, n, pending = c
-        idx = jnp.nonzero(pending, size=slots, fill_value=b)[0]  # b: an empty slot (dropped on write)
-        src = jnp.minimum(idx, b - 1)
-        dd, nn = planning.floyd_warshall_batch(a.w[src], chunk=slots)
-        d = d.at[idx].set(dd, mode='drop')
-        n = n.at[idx].set(nn.astype(jnp.int32), mode='drop')
-        return d, n, pending.at[idx].set(False, mode='drop')
-
-    d, n, _ = jax.lax.while_loop(lambda c: jnp.any(c[2]), one_pass, (a.dist, a.nxt, a.needs_replan))
+    """REPLAN the agents of a batch that pruned this step (``needs_replan``): Floyd-Warshall on
+    their weights alone, ``slots`` per pass (:func:`aqm_mjx.agent.plan.replan_pending`); the others
+    keep their distances and next hops. Results do not depend on ``slots``."""
+    d, n = planning.replan_pending(a.w, a.dist, a.nxt, a.needs_replan, slots)
     return a.replace(dist=d, nxt=n)
-
-

@@ -27,9 +27,10 @@ from aqm_mjx.data import goals
 from aqm_mjx.envs import parse_name
 from aqm_mjx.interface import Agent
 from aqm_mjx.learn import objectives, policy
-from aqm_mjx.learn.learner import Learner, LoopConfig, option
+from aqm_mjx.learn.learner import Learner, LoopConfig, Method, option
 from aqm_mjx.learn.losses import lambda_loss, qrl_loss
-from aqm_mjx.learn.quasimetric import INITS, IQE
+from aqm_mjx.learn.networks import INITS
+from aqm_mjx.learn.quasimetric import IQE
 
 QRL_VARIANTS = ('paper', 'ogbench')
 POLICY_GOALS = ('trajectory', 'random')
@@ -249,3 +250,14 @@ def make(cfg: AQMConfig, obs_size: int, action_size: int) -> Learner:
 
     return Learner(config=cfg, init=init, update=update, params=params, agent=agent,
                    modules={'quasimetric': iqe, 'policy': pi})
+
+
+EXPLORE = {'explore': {'policy_goals': 'random'}}  # paper App. 10.3: uniform random goals on explore data
+METHODS = (
+    Method('aqm', AQMConfig, make, {'objective': 'saw'},
+           'AQM: IQE quasimetric (QRL), Q-AWR target and Q-SAW main policies', EXPLORE, PROGRESS),
+    Method('aqm-awr', AQMConfig, make, {'objective': 'awr'},
+           "AQM's quasimetric with a Q-AWR policy on the goal (ablation)", EXPLORE, PROGRESS),
+    Method('aqm-bc', AQMConfig, make, {'objective': 'bc'},
+           "AQM's quasimetric with a behaviour-cloned policy (ablation)", EXPLORE, PROGRESS),
+)

@@ -17,6 +17,9 @@ from aqm_mjx import presets
 from aqm_mjx.envs import parse_name
 
 option = cfg_lib.option
+# the training bar's metrics of a method that names none: the baselines' losses ({metric: short name})
+PROGRESS = {'value/loss': 'value', 'critic/loss': 'critic', 'actor/loss': 'actor', 'high_actor/loss': 'high',
+            'low_actor/loss': 'low', 'value/lambda': 'lambda'}
 
 
 class Learner(NamedTuple):
@@ -88,3 +91,36 @@ class LoopConfig:
 
     def with_overrides(self, pairs):
         return cfg_lib.with_overrides(self, pairs)
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """A registry entry.
+
+    Attributes:
+        name: what ``--method`` and ``config.json`` call it.
+        config: its config class (``.preset(name, **overrides)``, ``.from_dict``, ``.to_dict``).
+        make: ``(config, obs_size, action_size) -> Learner``.
+        defaults: config fields this entry sets before the preset's overrides (an ablation's objective).
+        summary: one line for listings.
+        style_defaults: ``{dataset style: fields}`` set for data of that style (AQM on ``explore``
+            data: uniform random policy goals, the paper's App. 10.3), before ``overrides``.
+        progress: ``{metric: short name}`` of the metrics the training bar shows (default: the
+            baselines' :data:`PROGRESS`).
+    """
+
+    name: str
+    config: type
+    make: Callable[..., Learner]
+    defaults: dict = dataclasses.field(default_factory=dict)
+    summary: str = ''
+    style_defaults: dict = dataclasses.field(default_factory=dict)
+    progress: dict = dataclasses.field(default_factory=lambda: dict(PROGRESS))
+
+    def preset(self, preset: str, style: Optional[str] = None, **overrides):
+        """The config of preset ``preset`` with this entry's defaults, those of dataset ``style``
+        (``navigate``, ``stitch``, ``explore``; None: none), then ``overrides``."""
+        return self.config.preset(preset, **{**self.defaults, **self.style_defaults.get(style, {}), **overrides})
+
+    def from_dict(self, d: dict):
+        return self.config.from_dict(d)

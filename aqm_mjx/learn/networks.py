@@ -18,9 +18,22 @@ import jax
 import jax.numpy as jnp
 
 
+INITS = ('ogbench', 'lecun')
+
+
+def kernel_init(init: str = 'ogbench', scale: float = 1.0):
+    """Dense kernels of every network: ``'ogbench'`` variance scaling (fan_avg, uniform) at ``scale``,
+    OGBench's and so the paper's (Appendix 10.1); ``'lecun'`` flax's default (LeCun normal; ``scale``
+    ignored), an AQM option for comparison."""
+    if init not in INITS:
+        raise ValueError(f'unknown init {init!r}; expected one of {INITS}')
+    return nn.initializers.variance_scaling(scale, 'fan_avg', 'uniform') if init == 'ogbench' else \
+        nn.linear.default_kernel_init
+
+
 def default_init(scale: float = 1.0):
-    """Variance scaling, fan_avg, uniform (OGBench's initialiser) at ``scale``."""
-    return nn.initializers.variance_scaling(scale, 'fan_avg', 'uniform')
+    """:func:`kernel_init` ``('ogbench', scale)``: OGBench's initialiser, the baselines' networks'."""
+    return kernel_init('ogbench', scale)
 
 
 class MLP(nn.Module):

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from aqm_mjx.data.expert import yaw
-from aqm_mjx.learn.quasimetric import kernel_init
+from aqm_mjx.learn.networks import kernel_init
 
 CONDITIONING = ('goal', 'direction', 'egocentric')
 MEAN_SCALE = 1e-2  # of the mean layer's initialisation under initializer='ogbench' (OGBench's final_fc_init_scale)
@@ -89,7 +89,7 @@ class GaussianPolicy(nn.Module):
         hidden: MLP widths (paper: 3 x 512).
         const_std: a fixed unit standard deviation (OGBench's actors) instead of a learned log-std.
         initializer: ``'ogbench'`` (variance scaling fan_avg uniform, the mean layer at 1e-2 scale, as
-            OGBench's actors) or ``'lecun'`` (flax's default); :func:`~aqm_mjx.learn.quasimetric.kernel_init`.
+            OGBench's actors) or ``'lecun'`` (flax's default); :func:`~aqm_mjx.learn.networks.kernel_init`.
     """
 
     action_size: int

@@ -16,6 +16,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from aqm_mjx.learn.networks import kernel_init
+
 
 def interval_union_length(x: jax.Array, y: jax.Array) -> jax.Array:
     """Length of ``union_j [x_j, max(x_j, y_j)]`` over the last axis: ``x, y [..., M]`` -> ``[...]``.
@@ -69,19 +71,6 @@ def iqe_distance(zx: jax.Array, zy: jax.Array, n_components: int, alpha: jax.Arr
     return maxmean(iqe_components(zx, zy, n_components), alpha)
 
 
-INITS = ('ogbench', 'lecun')
-
-
-def kernel_init(init: str, scale: float = 1.0):
-    """Dense kernels: ``'ogbench'`` variance scaling (fan_avg, uniform) at ``scale``, OGBench's and so
-    the paper's (Appendix 10.1); ``'lecun'`` flax's default (LeCun normal; ``scale`` ignored), which
-    runs before 2026-11-24 used."""
-    if init not in INITS:
-        raise ValueError(f'unknown init {init!r}; expected one of {INITS}')
-    return nn.initializers.variance_scaling(scale, 'fan_avg', 'uniform') if init == 'ogbench' else \
-        nn.linear.default_kernel_init
-
-
 class Encoder(nn.Module):
     """MLP with GELU then LayerNorm after every hidden layer: ``[..., D] -> [..., N*M]``."""
 
@@ -103,7 +92,7 @@ class IQE(nn.Module):
     Attributes:
         hidden: encoder widths (paper: 3 x 512).
         n_components, component_size: N and M (paper: 512 x 1; OGBench's QRL: 64 x 8).
-        initializer: the encoder's kernel initialiser (:data:`INITS`).
+        initializer: the encoder's kernel initialiser (:data:`aqm_mjx.learn.networks.INITS`).
     """
 
     hidden: Sequence[int] = (512, 512, 512)

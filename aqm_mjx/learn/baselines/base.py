@@ -26,7 +26,7 @@ from aqm_mjx.data import goals
 from aqm_mjx.data.dataset import Dataset
 from aqm_mjx.interface import Agent
 from aqm_mjx.learn import losses, networks, policy
-from aqm_mjx.learn.learner import Learner, LoopConfig, option
+from aqm_mjx.learn.learner import Learner, LoopConfig, Method, option
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,8 +90,19 @@ class BaselineConfig(LoopConfig):
 
 
 # the metrics the training bar shows, {metric: short name} (those a baseline logs)
-PROGRESS = {'value/loss': 'value', 'critic/loss': 'critic', 'actor/loss': 'actor', 'high_actor/loss': 'high',
-            'low_actor/loss': 'low', 'value/lambda': 'lambda'}
+# OGBench's per-dataset settings (impls/hyperparameters.sh, antmaze-*-stitch and -explore): actor goals from
+# random dataset states on data whose trajectories do not cross the maze, and the explore alphas. GCBC keeps
+# its trajectory goals. SAW's public settings for these styles are not known to us: it takes HIQL's goal
+# mixture (it shares HIQL's value and sampler) and keeps its alphas.
+STITCH_GOALS = {'actor_p_random': 0.5, 'actor_p_trajectory': 0.5}
+EXPLORE_GOALS = {'actor_p_random': 1.0, 'actor_p_trajectory': 0.0}
+
+
+def ogbench_styles(**explore) -> dict:
+    """A method entry's ``style_defaults``: OGBench's stitch and explore goals, ``explore`` on top for explore."""
+    return {'stitch': dict(STITCH_GOALS), 'explore': {**EXPLORE_GOALS, **explore}}
+
+
 # each preset's network widths beside the loop's (aqm_mjx.presets.LOOP)
 SIZES = {
     'paper': dict(actor_hidden=(512, 512, 512), value_hidden=(512, 512, 512), conditioning='goal'),

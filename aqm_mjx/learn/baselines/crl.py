@@ -51,3 +51,7 @@ def make(cfg: CRLConfig, obs_size: int, action_size: int):
         return actor.apply(p['actor'], obs, base.goal_in(cfg, obs, goal))[0]
 
     return base.make_learner(cfg, init_params, (), loss, controller, {'critic': critic, 'actor': actor})
+
+
+METHODS = (base.Method('crl', CRLConfig, make, summary='CRL: contrastive critic (InfoNCE), DDPG+BC actor',
+                       style_defaults=base.ogbench_styles(alpha=0.003)),)

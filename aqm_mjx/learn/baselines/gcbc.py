@@ -41,3 +41,5 @@ def make(cfg: GCBCConfig, obs_size: int, action_size: int):
 
     return base.make_learner(cfg, init_params, (), loss, controller, {'actor': actor})
 
+
+METHODS = (base.Method('gcbc', GCBCConfig, make, summary='GCBC: goal-conditioned behaviour cloning'),)

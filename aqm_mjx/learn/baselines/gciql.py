@@ -52,3 +52,7 @@ def make(cfg: GCIQLConfig, obs_size: int, action_size: int):
 
     return base.make_learner(cfg, init_params, ('critic',), loss, controller,
                              {'critic': critic, 'value': value, 'actor': actor})
+
+
+METHODS = (base.Method('gciql', GCIQLConfig, make, summary='GCIQL: IQL Q and V, DDPG+BC actor',
+                       style_defaults=base.ogbench_styles(alpha=0.01)),)

@@ -47,3 +47,7 @@ def make(cfg: GCIVLConfig, obs_size: int, action_size: int):
         return actor.apply(p['actor'], obs, base.goal_in(cfg, obs, goal))[0]
 
     return base.make_learner(cfg, init_params, ('value',), loss, controller, {'value': value, 'actor': actor})
+
+
+METHODS = (base.Method('gcivl', GCIVLConfig, make, summary='GCIVL: implicit V-learning value, AWR actor',
+                       style_defaults=base.ogbench_styles()),)

@@ -96,3 +96,7 @@ def make(cfg: HIQLConfig, obs_size: int, action_size: int):
 
     return base.make_learner(cfg, init_params, ('value',), loss, controller,
                              {'goal_rep': rep, 'value': value, 'low_actor': low, 'high_actor': high})
+
+
+METHODS = (base.Method('hiql', HIQLConfig, make, summary='HIQL: IVL value with goal representation, high and '
+                       'low AWR policies', style_defaults=base.ogbench_styles(high_alpha=10.0, low_alpha=10.0)),)

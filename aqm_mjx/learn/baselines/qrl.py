@@ -88,3 +88,7 @@ def make(cfg: QRLConfig, obs_size: int, action_size: int):
 
     return base.make_learner(cfg, init_params, (), loss, controller,
                              {'quasimetric': iqe, 'dynamics': dynamics, 'actor': actor}, encode=encode, dist=dist)
+
+
+METHODS = (base.Method('qrl', QRLConfig, make, summary="QRL (OGBench's): IQE quasimetric, latent dynamics, DDPG+BC",
+                       style_defaults=base.ogbench_styles(alpha=0.001)),)

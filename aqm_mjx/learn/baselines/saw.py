@@ -76,3 +76,7 @@ def make(cfg: SAWConfig, obs_size: int, action_size: int):
 
     return base.make_learner(cfg, init_params, ('value',), loss, controller,
                              {'goal_rep': rep, 'value': value, 'sub_actor': sub_actor, 'actor': actor})
+
+
+METHODS = (base.Method('saw', SAWConfig, make, summary='SAW: IVL value, sub-policy and a flat policy bootstrapped '
+                       'from it', style_defaults=base.ogbench_styles()),)
