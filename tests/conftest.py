@@ -1,10 +1,49 @@
-"""Shared test helpers."""
+"""Shared test helpers, and one compilation cache for the session.
+
+The suite compiles many identical programs (the same env step, rollout or training chunk at the
+same shapes in several tests): a persistent JAX compilation cache in a fresh folder per session,
+shared by the pytest-xdist workers, compiles each once. ``AQM_TEST_COMPILE_CACHE=0`` turns it off
+(every program compiled in its test, as before). Nothing outlives the session: the folder is removed
+at its end.
+"""
 
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 
 import pytest
+
+CACHE_ENV = 'AQM_TEST_JAX_CACHE'  # the session's cache folder, set by the first process, inherited by workers
+
+
+def pytest_configure(config):
+    if os.environ.get('AQM_TEST_COMPILE_CACHE', '1') == '0':
+        return
+    if not os.environ.get(CACHE_ENV):
+        os.environ[CACHE_ENV] = tempfile.mkdtemp(prefix='aqm_test_jax_cache_')
+        config._aqm_cache_owner = True  # pylint: disable=protected-access
+    import jax  # pylint: disable=import-outside-toplevel
+
+    jax.config.update('jax_compilation_cache_dir', os.environ[CACHE_ENV])
+    jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
+
+
+def pytest_unconfigure(config):
+    if getattr(config, '_aqm_cache_owner', False):
+        shutil.rmtree(os.environ.pop(CACHE_ENV), ignore_errors=True)
+
+
+@pytest.fixture
+def no_compile_cache():
+    """Compile in this test even when the session's cache holds the program (tests that count compilations)."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    before = jax.config.jax_enable_compilation_cache
+    jax.config.update('jax_enable_compilation_cache', False)
+    yield
+    jax.config.update('jax_enable_compilation_cache', before)
 
 
 @pytest.fixture

@@ -163,3 +163,15 @@ def test_version_and_provenance(capsys):
         assert p['commit'].split('+')[0] == head.stdout.strip()
     else:
         assert p['commit'] is None
+
+
+def test_a_configured_compile_cache_wins_over_the_commands_default(tmp_path):
+    import jax
+
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        jax.config.update('jax_compilation_cache_dir', str(tmp_path))
+        cli.enable_compile_cache()  # what every command calls first
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path)
+    finally:
+        jax.config.update('jax_compilation_cache_dir', before)

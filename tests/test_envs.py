@@ -302,7 +302,8 @@ def test_one_control_step_parity_with_ogbench(ant):
     assert np.percentile(err[near], 95) < 2e-2
 
 
-@pytest.mark.parametrize('steps,seed', [(100, 0), pytest.param(1000, 1, marks=pytest.mark.slow)])
+@pytest.mark.parametrize('steps,seed', [pytest.param(100, 0, marks=pytest.mark.slow),  # 2 minutes of ant compiles
+                                        pytest.param(1000, 1, marks=pytest.mark.slow)])
 def test_ant_never_enters_walls(ant, steps, seed):
     """(b): 64 envs x ``steps`` random-action steps in the large maze, each ant thrown at its
     nearest wall at 4 m/s first; 1000 steps (as stated) is the slow case, 100 the CPU-sized one."""
@@ -334,7 +335,9 @@ def test_ant_blocked_by_corridor_closed_in_half_the_batch(ant):
     assert np.all(x[~closed] > 2.5)
 
 
-def test_step_compiles_once_across_grids_and_calls(ant):
+@pytest.mark.slow  # 1.5 minutes of ant compiles; the default tier checks one program per batch shape on the point
+# (test_per_environment_walls_block_only_where_closed)
+def test_step_compiles_once_across_grids_and_calls(ant, no_compile_cache):
     """The timing trap: a step called on its own output, and with another grid, does not retrace."""
     env, _ = ant
     traces, compiles = [], []

@@ -371,6 +371,7 @@ def closed_5_3(base):
     return g
 
 
+@pytest.mark.slow  # 1.3 minutes of compiles (three chunk sizes)
 def test_protocol_results_do_not_depend_on_chunking():
     base = mazes.layout('medium')
     env, agent, graph, cfg, proto = exact_point_agent(base)

@@ -49,6 +49,7 @@ def one_program():
     return cfg, env, data, ds_io.to_device(data), run, jax.jit(run)
 
 
+@pytest.mark.slow  # 3 minutes; the default tier checks all three paths against recorded values (test_regression.py)
 def test_one_program_equals_the_step_by_step_path(tmp_path, one_program):
     cfg, env, data, ds, run, single = one_program
     key = jax.random.PRNGKey(3)
@@ -96,6 +97,7 @@ def test_one_program_equals_the_step_by_step_path(tmp_path, one_program):
     assert set(out['metrics']) >= {'qrl/loss', 'policy/main_loss'}
 
 
+@pytest.mark.slow  # 1.5 minutes; the default tier checks vmapped training seeds (test_compare.py)
 def test_seeds_vmap_in_one_compile_and_match_separate_calls(one_program):
     _, _, _, ds, run, single = one_program
     traces = []

@@ -14,10 +14,13 @@ from aqm_mjx import presets
 
 
 def enable_compile_cache():
+    """JAX's persistent compilation cache for the commands: ``~/.cache/aqm_mjx/jax``, unless a cache
+    folder is already configured (``JAX_COMPILATION_CACHE_DIR``, or a caller's ``jax.config``), which wins."""
     import jax  # pylint: disable=import-outside-toplevel
 
-    jax.config.update('jax_compilation_cache_dir', os.path.expanduser('~/.cache/aqm_mjx/jax'))
-    jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
+    if not jax.config.jax_compilation_cache_dir:
+        jax.config.update('jax_compilation_cache_dir', os.path.expanduser('~/.cache/aqm_mjx/jax'))
+        jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
 
 
 def cmd_envs(a):
