@@ -1,0 +1,108 @@
+"""GAS's graph nodes (Graph-Assisted Stitching): temporal-efficiency (TE) filtering of dataset states,
+then TD-aware clustering of the states kept, both in the temporal distance representation (TDR)
+``f``, where ``||f(s) - f(s')||`` estimates the steps between s and s'.
+
+- TE filtering: a state ``s_i`` whose trajectory runs on for at least ``H`` (``way_steps``) more
+  states is kept when the trajectory's direction over those ``H`` steps, ``f_{i+H} - f_i``, points
+  where the trajectory first gets ``H`` away, ``f_j - f_i`` with ``j`` the first later state of the
+  trajectory at ``||f_j - f_i|| >= H`` (its last state when none is): cosine >= ``threshold``.
+  States in a trajectory's last ``H`` are kept. A state that loops or dithers points elsewhere.
+- TD-aware clustering: the kept states in dataset order, each joining the nearest leader when it is
+  within ``H / 2`` and founding a new one otherwise; a node is the mean of its members.
+
+The functions are pure and jittable with static shapes: ``max_len`` (the longest trajectory) bounds
+the search for ``j``, ``max_nodes`` the leaders (``overflow`` says when a state that needed a new
+leader joined the nearest one instead).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+
+def _cosine(u: jax.Array, v: jax.Array) -> jax.Array:
+    """Cosine of ``u, v [..., D]`` with GAS's 1e-10 guard on each norm."""
+    u = u / (jnp.linalg.norm(u, axis=-1, keepdims=True) + 1e-10)
+    v = v / (jnp.linalg.norm(v, axis=-1, keepdims=True) + 1e-10)
+    return jnp.sum(u * v, axis=-1)
+
+
+def efficient_states(f: jax.Array, traj_end: jax.Array, way_steps: int, threshold: float, max_len: int,
+                     chunk: int = 1024) -> jax.Array:
+    """TE filtering: bool ``[N]``, the states kept.
+
+    Args:
+        f: ``[N, D]`` TDR embeddings of the dataset's states, trajectories stored one after another.
+        traj_end: int32 ``[N]`` index of the last state of each state's trajectory
+            (:class:`aqm_mjx.data.dataset.Dataset`'s ``traj_end``).
+        way_steps: ``H``; threshold: the cosine below which a state is dropped.
+        max_len: static, at least the longest trajectory's length (the forward search's window).
+    """
+    n = f.shape[0]
+    traj_end = jnp.asarray(traj_end, jnp.int32)
+    offsets = jnp.arange(1, max_len, dtype=jnp.int32)  # j = i + 1 .. i + max_len - 1
+
+    def one(i):
+        end = traj_end[i]
+        j = jnp.minimum(i + offsets, end)  # [max_len - 1], clamped to the trajectory
+        far = (jnp.linalg.norm(f[j] - f[i], axis=-1) >= way_steps) & (i + offsets <= end)
+        first = jnp.where(jnp.any(far), i + 1 + jnp.argmax(far), end)
+        cos = _cosine(f[jnp.minimum(i + way_steps, end)] - f[i], f[first] - f[i])
+        return (i + way_steps > end) | (cos >= threshold)
+
+    idx = jnp.arange(n, dtype=jnp.int32)
+    pad = (-n) % chunk
+    idx = jnp.concatenate([idx, jnp.full((pad,), n - 1, jnp.int32)]).reshape(-1, chunk)
+    return jax.lax.map(jax.vmap(one), idx).reshape(-1)[:n]
+
+
+@struct.dataclass
+class Nodes:
+    """GAS's nodes.
+
+    Attributes:
+        centers: float32 ``[M, D]`` each node's mean TDR embedding (zeros where not valid).
+        mask: bool ``[M]`` validity; count: int32 nodes.
+        assign: int32 ``[N]`` the node each state joined (-1: filtered out).
+        overflow: bool, a state that needed a new node joined the nearest one (``max_nodes`` reached).
+    """
+
+    centers: jax.Array
+    mask: jax.Array
+    count: jax.Array
+    assign: jax.Array
+    overflow: jax.Array
+
+
+def td_aware_clustering(f: jax.Array, keep: jax.Array, way_steps: int, max_nodes: int) -> Nodes:
+    """TD-aware clustering of the states ``keep [N]`` marks (in dataset order) at radius ``H / 2``.
+
+    Args:
+        f: ``[N, D]`` TDR embeddings; keep: bool ``[N]`` (:func:`efficient_states`).
+        way_steps: ``H``; max_nodes: static bound on the nodes.
+    """
+    n, dim = f.shape
+    radius = way_steps / 2
+
+    def body(i, c):
+        leaders, count, assign, overflow = c
+        d = jnp.where(jnp.arange(max_nodes) < count, jnp.linalg.norm(f[i] - leaders, axis=-1), jnp.inf)
+        near = jnp.argmin(d).astype(jnp.int32)
+        new = keep[i] & (d[near] > radius)
+        room = count < max_nodes
+        founds = new & room
+        leaders = jnp.where(founds, leaders.at[jnp.minimum(count, max_nodes - 1)].set(f[i]), leaders)
+        node = jnp.where(founds, count, near)
+        assign = assign.at[i].set(jnp.where(keep[i], node, -1))
+        return leaders, count + founds.astype(jnp.int32), assign, overflow | (new & ~room)
+
+    init = (jnp.zeros((max_nodes, dim), f.dtype), jnp.int32(0), jnp.full((n,), -1, jnp.int32), jnp.bool_(False))
+    _, count, assign, overflow = jax.lax.fori_loop(0, n, body, init)
+    members = jax.ops.segment_sum(jnp.ones((n,), f.dtype), jnp.where(assign >= 0, assign, max_nodes),
+                                  num_segments=max_nodes + 1)[:max_nodes]
+    sums = jax.ops.segment_sum(f, jnp.where(assign >= 0, assign, max_nodes), num_segments=max_nodes + 1)[:max_nodes]
+    mask = jnp.arange(max_nodes) < count
+    centers = jnp.where(mask[:, None], sums / jnp.maximum(members, 1.0)[:, None], 0.0)
+    return Nodes(centers=centers, mask=mask, count=count, assign=assign, overflow=overflow)

@@ -1,0 +1,95 @@
+"""GAS's node construction against its public reference, on the same embeddings.
+
+    git clone https://github.com/qortmdgh4141/GAS /tmp/GAS        # or any checkout of it
+    python benchmarks/bench_parity_gas.py --reference /tmp/GAS
+
+The reference's own ``K_utils/keynodes_utils.py`` (temporal-efficiency filtering, TD-aware
+clustering; imported from ``--reference``, not copied) and :mod:`aqm_mjx.mapping.gas_nodes` run on
+the same embeddings: random walks in 8 dimensions, trajectories of uneven length, at several
+``(way_steps, threshold)``. Per case: the states kept (equal sets), the node count and the largest
+difference between the node centres. The control runs ours at a threshold moved by 0.05 and must
+disagree (a parity check that cannot fail checks nothing).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import sys
+import time
+
+import jax.numpy as jnp
+import numpy as np
+
+from aqm_mjx.mapping import gas_nodes
+
+from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+
+CASES = ((10, 0.5), (25, 0.0), (5, 0.9), (50, 0.7))
+
+
+def _reference(root: str):
+    path = os.path.join(root, 'K_utils', 'keynodes_utils.py')
+    if not os.path.exists(path):
+        raise SystemExit(f'{path} not found: --reference must be a checkout of qortmdgh4141/GAS')
+    spec = importlib.util.spec_from_file_location('gas_keynodes_utils', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _ours(f, ends, way_steps, threshold, max_len, max_nodes):
+    keep = gas_nodes.efficient_states(jnp.asarray(f), jnp.asarray(ends), way_steps, threshold, max_len=max_len)
+    nodes = gas_nodes.td_aware_clustering(jnp.asarray(f), keep, way_steps, max_nodes=max_nodes)
+    return np.nonzero(np.asarray(keep))[0], np.asarray(nodes.centers)[:int(nodes.count)], bool(nodes.overflow)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('--reference', required=True, help='a checkout of github.com/qortmdgh4141/GAS')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--out', default=None)
+    a = p.parse_args()
+    ref = _reference(a.reference)
+    rng = np.random.default_rng(a.seed)
+    lens = [300, 250, 400, 120, 1000]
+    f = np.concatenate([np.cumsum(rng.normal(size=(n, 8)), 0) for n in lens]).astype(np.float32)
+    dones = np.zeros(len(f), np.float32)
+    dones[np.cumsum(lens) - 1] = 1
+    ends = np.concatenate([np.full(n, e) for n, e in zip(lens, np.cumsum(lens) - 1)]).astype(np.int32)
+    rows, ok, control_agrees = [], True, True
+    print(f'{len(f)} states in {len(lens)} trajectories, 8-d embeddings')
+    print(f'{"H":>4} {"thr":>5} {"kept ref":>9} {"kept ours":>9} {"same":>5} {"nodes ref":>9} {"nodes ours":>10} '
+          f'{"max |dc|":>9} {"control":>8} {"ours s":>7}')
+    for way_steps, thr in CASES:
+        with open(os.devnull, 'w') as null:  # the reference prints tqdm bars
+            err, sys.stderr = sys.stderr, null
+            try:
+                trajs, starts = ref.split_trajectories(f, dones)
+                want = np.asarray(ref.collect_efficiency_states(trajs, starts, way_steps, thr))
+                centers = ref.td_aware_clustering(f, want, way_steps)
+            finally:
+                sys.stderr = err
+        t0 = time.perf_counter()
+        got, ours, overflow = _ours(f, ends, way_steps, thr, max(lens), 4096)
+        secs = time.perf_counter() - t0
+        same = np.array_equal(want, got) and ours.shape == centers.shape and not overflow
+        diff = float(np.abs(ours - centers).max()) if ours.shape == centers.shape else float('inf')
+        c_got, c_centers, _ = _ours(f, ends, way_steps, thr + 0.05, max(lens), 4096)  # CONTROL: another threshold
+        control = np.array_equal(want, c_got) and c_centers.shape == centers.shape
+        ok &= same and diff < 1e-4
+        control_agrees &= control
+        rows.append(dict(way_steps=way_steps, threshold=thr, kept_ref=len(want), kept_ours=len(got), same_kept=same,
+                         nodes_ref=len(centers), nodes_ours=len(ours), max_center_diff=diff, control_agrees=control,
+                         seconds_ours=secs))
+        print(f'{way_steps:4d} {thr:5.2f} {len(want):9d} {len(got):9d} {str(same):>5} {len(centers):9d} {len(ours):10d} '
+              f'{diff:9.1e} {"agrees" if control else "differs":>8} {secs:7.2f}')
+    print(f'parity: {"PASS" if ok else "FAIL"} (same states kept, same nodes, centres within 1e-4); '
+          f'control: {"FAIL (agreed)" if control_agrees else "differs as it must"}')
+    finish(rows, a.out)
+    sys.exit(0 if ok and not control_agrees else 1)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,55 @@
+"""GAS's node construction by hand: temporal-efficiency filtering and TD-aware clustering."""
+
+import jax.numpy as jnp
+import numpy as np
+
+from aqm_mjx.mapping import gas_nodes
+
+
+def _line(xs):
+    """Embeddings on the x axis: ``[len(xs), 2]``."""
+    return np.stack([np.asarray(xs, np.float32), np.zeros(len(xs), np.float32)], axis=1)
+
+
+def _ends(lengths):
+    return np.concatenate([np.full(n, sum(lengths[:k + 1]) - 1) for k, n in enumerate(lengths)]).astype(np.int32)
+
+
+def test_te_filtering_drops_the_turning_state_and_never_searches_the_next_trajectory():
+    # trajectory A turns back at x = 2; H = 2, cosine threshold 0.5
+    #   i=1 (x=1): f[3] - f[1] = 0 (no direction: cosine 0) -> dropped; every other direction agrees
+    #   with where the trajectory first gets 2 away; i=5, 6 lie in the last H states -> kept
+    # trajectory B: 0, 1, 2, 2.5 never gets 2 away from x=1 (i=8): its own last state is the target
+    #   (cosine 1, kept); trajectory C starts at -5, which a search past B's end would have found
+    f = np.concatenate([_line([0, 1, 2, 1, 0, -1, -2]), _line([0, 1, 2, 2.5]), _line([-5, -6])])
+    keep = gas_nodes.efficient_states(jnp.asarray(f), jnp.asarray(_ends([7, 4, 2])), 2, 0.5, max_len=7)
+    np.testing.assert_array_equal(keep, [True, False, True, True, True, True, True,
+                                         True, True, True, True, True, True])
+
+
+def test_te_filtering_drops_a_state_whose_next_steps_point_away_from_its_progress():
+    # an L-shaped trajectory with a detour: from (0, 0) it steps to (1, 0), back to (0, 0), then up the y axis.
+    # H = 2. i=0: f[2] - f[0] = 0 -> dropped. i=1: f[3] - f[1] = (-1, 1); the first state 2 away from (1, 0)
+    # is (0, 2) at j=4: (-1, 2): cosine 3 / sqrt(10) = 0.949 -> kept at 0.9, dropped at 0.95
+    f = np.array([[0, 0], [1, 0], [0, 0], [0, 1], [0, 2], [0, 3]], np.float32)
+    ends = np.full(6, 5, np.int32)
+    for thr, want1 in ((0.9, True), (0.95, False)):
+        keep = np.asarray(gas_nodes.efficient_states(jnp.asarray(f), jnp.asarray(ends), 2, thr, max_len=6))
+        assert not keep[0] and keep[1] == want1 and keep[2:].all()
+
+
+def test_td_aware_clustering_by_hand():
+    # H = 4: radius 2. In order: 0 founds node 0; 1.5 joins it (1.5 <= 2); 5 founds node 1 (5 from
+    # leader 0); 2.5 founds node 2 (2.5 from leader 0 and from leader 5, both > 2); 100 is filtered
+    # out; 6.5 joins node 1 (1.5 from leader 5). Centres: the mean of each node's members.
+    f = _line([0, 1.5, 5, 2.5, 100, 6.5])
+    keep = np.array([True, True, True, True, False, True])
+    nodes = gas_nodes.td_aware_clustering(jnp.asarray(f), jnp.asarray(keep), 4, max_nodes=4)
+    np.testing.assert_array_equal(nodes.assign, [0, 0, 1, 2, -1, 1])
+    assert int(nodes.count) == 3 and not bool(nodes.overflow)
+    np.testing.assert_allclose(nodes.centers[:, 0], [0.75, 5.75, 2.5, 0.0])
+    np.testing.assert_array_equal(nodes.mask, [True, True, True, False])
+    # with room for two nodes, 2.5 joins its nearest leader (0: 2.5 away, against 2.5 from 5: the first wins)
+    small = gas_nodes.td_aware_clustering(jnp.asarray(f), jnp.asarray(keep), 4, max_nodes=2)
+    np.testing.assert_array_equal(small.assign, [0, 0, 1, 0, -1, 1])
+    assert bool(small.overflow) and int(small.count) == 2
