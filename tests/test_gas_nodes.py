@@ -53,3 +53,19 @@ def test_td_aware_clustering_by_hand():
     small = gas_nodes.td_aware_clustering(jnp.asarray(f), jnp.asarray(keep), 4, max_nodes=2)
     np.testing.assert_array_equal(small.assign, [0, 0, 1, 0, -1, 1])
     assert bool(small.overflow) and int(small.count) == 2
+
+
+def test_gas_edges_join_nodes_within_reach_and_connect_the_components_by_their_closest_pairs():
+    # nodes on a line at 0, 3, 4, 10, 20 (the last not valid); H = 3.5: edges 0-3, 3-4 (weights 3, 1);
+    # 10 is alone: its component is joined to the first node's by the closest pair, 4-10 (weight 6)
+    c = _line([0, 3, 4, 10, 20])
+    mask = np.array([True, True, True, True, False])
+    w = np.asarray(gas_nodes.gas_edges(jnp.asarray(c), jnp.asarray(mask), 3.5))
+    inf = np.inf
+    np.testing.assert_array_equal(w, [[0, 3, inf, inf, inf], [3, 0, 1, inf, inf], [inf, 1, 0, 6, inf],
+                                      [inf, inf, 6, 0, inf], [inf, inf, inf, inf, inf]])
+    # two far groups and a lone node: {0, 1} and {30, 31} and {15}; the first node's group grows by the
+    # closest pair each time: 1-15 (14), then 15-30 (15)
+    w = np.asarray(gas_nodes.gas_edges(jnp.asarray(_line([0, 1, 30, 31, 15])), jnp.ones(5, bool), 2.0))
+    assert np.isfinite(w).sum() == 5 + 2 * 4  # diagonal, 0-1, 30-31, 1-15, 15-30 both ways
+    assert w[1, 4] == w[4, 1] == 14 and w[4, 2] == w[2, 4] == 15

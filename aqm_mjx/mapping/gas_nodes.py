@@ -1,4 +1,4 @@
-"""GAS's graph nodes (Graph-Assisted Stitching): temporal-efficiency (TE) filtering of dataset states,
+"""GAS's graph (Graph-Assisted Stitching): temporal-efficiency (TE) filtering of dataset states,
 then TD-aware clustering of the states kept, both in the temporal distance representation (TDR)
 ``f``, where ``||f(s) - f(s')||`` estimates the steps between s and s'.
 
@@ -9,6 +9,9 @@ then TD-aware clustering of the states kept, both in the temporal distance repre
   States in a trajectory's last ``H`` are kept. A state that loops or dithers points elsewhere.
 - TD-aware clustering: the kept states in dataset order, each joining the nearest leader when it is
   within ``H / 2`` and founding a new one otherwise; a node is the mean of its members.
+- Edges (:func:`gas_edges`): nodes within ``H`` joined both ways, weighted by their distance; the
+  components then joined by their closest pairs. Shortest paths on the weights are the planner's
+  (:mod:`aqm_mjx.agent.plan`).
 
 The functions are pure and jittable with static shapes: ``max_len`` (the longest trajectory) bounds
 the search for ``j``, ``max_nodes`` the leaders (``overflow`` says when a state that needed a new
@@ -106,3 +109,44 @@ def td_aware_clustering(f: jax.Array, keep: jax.Array, way_steps: int, max_nodes
     mask = jnp.arange(max_nodes) < count
     centers = jnp.where(mask[:, None], sums / jnp.maximum(members, 1.0)[:, None], 0.0)
     return Nodes(centers=centers, mask=mask, count=count, assign=assign, overflow=overflow)
+
+
+def _components(adj: jax.Array, valid: jax.Array) -> jax.Array:
+    """Connected components of a symmetric ``adj [M, M]``: int32 ``[M]`` the smallest node index of each
+    node's component (``M`` where not valid)."""
+    m = adj.shape[0]
+    init = jnp.where(valid, jnp.arange(m), m).astype(jnp.int32)
+
+    def spread(c):
+        labels, _ = c
+        new = jnp.minimum(labels, jnp.min(jnp.where(adj, labels[None, :], m), axis=1)).astype(jnp.int32)
+        return jnp.where(valid, new, m), jnp.any(new != labels)
+
+    return jax.lax.while_loop(lambda c: c[1], spread, (init, jnp.bool_(True)))[0]
+
+
+def gas_edges(centers: jax.Array, mask: jax.Array, way_steps: float) -> jax.Array:
+    """GAS's graph on its nodes: weights ``[M, M]`` (``inf``: no edge, 0 on the valid diagonal).
+
+    Nodes within ``way_steps`` of each other (Euclidean distance of their centres) are joined both ways,
+    weighted by that distance. Then, while the graph falls apart, the component of the first node
+    is joined to the nearest node outside it by one edge each way (the closest pair), so that every
+    node reaches every other, as GAS connects its components.
+    """
+    m = centers.shape[0]
+    d = jnp.linalg.norm(centers[:, None, :] - centers[None, :, :], axis=-1)
+    pair = mask[:, None] & mask[None, :]
+    off = ~jnp.eye(m, dtype=bool)
+    adj = pair & off & (d <= way_steps)
+    first = jnp.argmax(mask)
+
+    def join(c):
+        adj, labels = c
+        main = labels == labels[first]
+        gap = jnp.where(main[:, None] & ~main[None, :] & mask[None, :] & mask[:, None], d, jnp.inf)
+        i, j = jnp.unravel_index(jnp.argmin(gap), gap.shape)
+        adj = adj.at[i, j].set(True).at[j, i].set(True)
+        return adj, _components(adj, mask)
+
+    adj, _ = jax.lax.while_loop(lambda c: jnp.any(mask & (c[1] != c[1][first])), join, (adj, _components(adj, mask)))
+    return jnp.where(adj, d, jnp.where(pair & ~off, 0.0, jnp.inf)).astype(jnp.float32)
