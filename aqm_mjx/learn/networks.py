@@ -123,6 +123,33 @@ class Bilinear(nn.Module):
         return jnp.sum(phi * psi, axis=-1) / jnp.sqrt(self.latent), phi, psi
 
 
+def hilbert_value(phi_s: jax.Array, phi_g: jax.Array) -> jax.Array:
+    """A value as a distance in a Hilbert representation (HILP, GAS's TDR): ``-||phi(s) - phi(g)||``,
+    the norm floored at 1e-3 as both references do (``-sqrt(max(|.|^2, 1e-6))``): ``[..., L] -> [...]``."""
+    return -jnp.sqrt(jnp.maximum(jnp.sum(jnp.square(phi_s - phi_g), axis=-1), 1e-6))
+
+
+class HilbertValue(nn.Module):
+    """HILP's and GAS's value ``V_i(s, g) = -||phi_i(s) - phi_i(g)||`` with two heads.
+
+    ``(obs [B, D], goal [B, D]) -> v [2, B]``; :meth:`phi` ``(obs [B, D]) -> [B, L]``, the first head's
+    representation (the one both references plan and condition their policies with).
+    """
+
+    hidden: Sequence[int]
+    latent: int
+    layer_norm: bool = True
+
+    def setup(self):
+        self.phi_net = ensemble(MLP, 2)((*self.hidden, self.latent), activate_final=False, layer_norm=self.layer_norm)
+
+    def phi(self, obs):
+        return self.phi_net(obs)[0]
+
+    def __call__(self, obs, goal):
+        return hilbert_value(self.phi_net(obs), self.phi_net(goal))
+
+
 def length_normalize(x: jax.Array) -> jax.Array:
     """``x`` scaled to length ``sqrt(dim)`` along the last axis. The norm is floored at 1e-6 (OGBench
     divides by it as is), so a zero vector, e.g. the representation of the all-zero input [s; g] at

@@ -1,4 +1,4 @@
-"""GAS's node construction by hand: temporal-efficiency filtering and TD-aware clustering."""
+"""GAS's and HILP's parts by hand: temporal-efficiency filtering, TD-aware clustering, GAS's edges, the Hilbert value."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -69,3 +69,32 @@ def test_gas_edges_join_nodes_within_reach_and_connect_the_components_by_their_c
     w = np.asarray(gas_nodes.gas_edges(jnp.asarray(_line([0, 1, 30, 31, 15])), jnp.ones(5, bool), 2.0))
     assert np.isfinite(w).sum() == 5 + 2 * 4  # diagonal, 0-1, 30-31, 1-15, 15-30 both ways
     assert w[1, 4] == w[4, 1] == 14 and w[4, 2] == w[2, 4] == 15
+
+
+def test_the_hilbert_representation_value_and_its_loss_by_hand():
+    import jax
+
+    from aqm_mjx.learn import losses, networks
+
+    # V = -||phi(s) - phi(g)||: a 3-4-5 triangle, and the 1e-3 floor where the two coincide
+    v = networks.hilbert_value(jnp.array([[0.0, 0.0], [1.0, 1.0]]), jnp.array([[3.0, 4.0], [1.0, 1.0]]))
+    np.testing.assert_allclose(v, [-5.0, -1e-3], rtol=1e-6)
+    # the module: two heads, each the distance of its own representation; phi is the first head's
+    net = networks.HilbertValue((16,), latent=3)
+    obs, goal = jnp.ones((4, 5)), jnp.zeros((4, 5))
+    params = net.init(jax.random.PRNGKey(0), obs, goal)
+    heads = net.apply(params, obs, goal)
+    phi_s, phi_g = net.apply(params, obs, method='phi'), net.apply(params, goal, method='phi')
+    assert heads.shape == (2, 4)
+    np.testing.assert_allclose(heads[0], -np.linalg.norm(np.asarray(phi_s - phi_g), axis=-1), rtol=1e-5)
+    # the representation's loss is implicit V-learning on that value (both references' value loss):
+    # online heads V = (-5, -3), targets (-4, -4) at (s, g) and (-3, -2) at (s', g), r = -1, mask 1,
+    # discount 0.99, expectile 0.7: q_i = -1 + 0.99 V'_i(s') = (-3.97, -2.98); adv = -1 + 0.99 * -3 + 4
+    # = 0.03 >= 0, so weight 0.7: loss = 0.7 (1.03^2 + 0.02^2) = 0.74291
+    loss, _ = losses.ivl_value_loss(jnp.array([[-5.0], [-3.0]]), jnp.array([[-4.0], [-4.0]]), jnp.array([[-3.0], [-2.0]]),
+                                    jnp.array([-1.0]), jnp.array([1.0]), 0.99, 0.7)
+    np.testing.assert_allclose(float(loss), 0.7 * (1.03 ** 2 + 0.02 ** 2), rtol=1e-5)
+    # a negative advantage takes the other side: targets (-2, -2) at (s, g) make adv = -1.97: weight 0.3
+    loss, _ = losses.ivl_value_loss(jnp.array([[-5.0], [-3.0]]), jnp.array([[-2.0], [-2.0]]), jnp.array([[-3.0], [-2.0]]),
+                                    jnp.array([-1.0]), jnp.array([1.0]), 0.99, 0.7)
+    np.testing.assert_allclose(float(loss), 0.3 * (1.03 ** 2 + 0.02 ** 2), rtol=1e-5)
