@@ -98,3 +98,11 @@ def test_the_hilbert_representation_value_and_its_loss_by_hand():
     loss, _ = losses.ivl_value_loss(jnp.array([[-5.0], [-3.0]]), jnp.array([[-2.0], [-2.0]]), jnp.array([[-3.0], [-2.0]]),
                                     jnp.array([-1.0]), jnp.array([1.0]), 0.99, 0.7)
     np.testing.assert_allclose(float(loss), 0.3 * (1.03 ** 2 + 0.02 ** 2), rtol=1e-5)
+
+
+def test_waystep_indices_by_hand():
+    # H = 2 on trajectory A (x = 0, 1, 2, 1, 0, -1, -2) and B (0, 1, 2, 2.5): the first state of the
+    # same trajectory at least 2 away, else the trajectory's last state (6 for A, 10 for B)
+    f = np.concatenate([_line([0, 1, 2, 1, 0, -1, -2]), _line([0, 1, 2, 2.5])])
+    idx = gas_nodes.waystep_indices(jnp.asarray(f), jnp.asarray(_ends([7, 4])), 2, max_len=7)
+    np.testing.assert_array_equal(idx, [2, 5, 4, 5, 6, 6, 6, 9, 10, 10, 10])

@@ -12,6 +12,8 @@ then TD-aware clustering of the states kept, both in the temporal distance repre
 - Edges (:func:`gas_edges`): nodes within ``H`` joined both ways, weighted by their distance; the
   components then joined by their closest pairs. Shortest paths on the weights are the planner's
   (:mod:`aqm_mjx.agent.plan`).
+- Waystep subgoals (:func:`waystep_indices`): per state, the first later state of its trajectory
+  ``H`` away, the goal GAS's low-level policy is trained towards.
 
 The functions are pure and jittable with static shapes: ``max_len`` (the longest trajectory) bounds
 the search for ``j``, ``max_nodes`` the leaders (``overflow`` says when a state that needed a new
@@ -32,6 +34,22 @@ def _cosine(u: jax.Array, v: jax.Array) -> jax.Array:
     return jnp.sum(u * v, axis=-1)
 
 
+def _first_far(f: jax.Array, traj_end: jax.Array, i: jax.Array, way_steps, offsets: jax.Array) -> jax.Array:
+    """The first state ``j = i + offsets[k]`` of ``i``'s trajectory with ``||f_j - f_i|| >= way_steps``,
+    else the trajectory's last state."""
+    end = traj_end[i]
+    far = (jnp.linalg.norm(f[jnp.minimum(i + offsets, end)] - f[i], axis=-1) >= way_steps) & (i + offsets <= end)
+    return jnp.where(jnp.any(far), i + offsets[jnp.argmax(far)], end).astype(jnp.int32)
+
+
+def _per_state(fn, n: int, chunk: int) -> jax.Array:
+    """``fn(i)`` for every state index, ``chunk`` at a time (``lax.map`` over vmapped chunks)."""
+    idx = jnp.arange(n, dtype=jnp.int32)
+    pad = (-n) % chunk
+    idx = jnp.concatenate([idx, jnp.full((pad,), n - 1, jnp.int32)]).reshape(-1, chunk)
+    return jax.lax.map(jax.vmap(fn), idx).reshape(-1)[:n]
+
+
 def efficient_states(f: jax.Array, traj_end: jax.Array, way_steps: int, threshold: float, max_len: int,
                      chunk: int = 1024) -> jax.Array:
     """TE filtering: bool ``[N]``, the states kept.
@@ -43,22 +61,25 @@ def efficient_states(f: jax.Array, traj_end: jax.Array, way_steps: int, threshol
         way_steps: ``H``; threshold: the cosine below which a state is dropped.
         max_len: static, at least the longest trajectory's length (the forward search's window).
     """
-    n = f.shape[0]
     traj_end = jnp.asarray(traj_end, jnp.int32)
     offsets = jnp.arange(1, max_len, dtype=jnp.int32)  # j = i + 1 .. i + max_len - 1
 
     def one(i):
         end = traj_end[i]
-        j = jnp.minimum(i + offsets, end)  # [max_len - 1], clamped to the trajectory
-        far = (jnp.linalg.norm(f[j] - f[i], axis=-1) >= way_steps) & (i + offsets <= end)
-        first = jnp.where(jnp.any(far), i + 1 + jnp.argmax(far), end)
+        first = _first_far(f, traj_end, i, way_steps, offsets)
         cos = _cosine(f[jnp.minimum(i + way_steps, end)] - f[i], f[first] - f[i])
         return (i + way_steps > end) | (cos >= threshold)
 
-    idx = jnp.arange(n, dtype=jnp.int32)
-    pad = (-n) % chunk
-    idx = jnp.concatenate([idx, jnp.full((pad,), n - 1, jnp.int32)]).reshape(-1, chunk)
-    return jax.lax.map(jax.vmap(one), idx).reshape(-1)[:n]
+    return _per_state(one, f.shape[0], chunk)
+
+
+def waystep_indices(f: jax.Array, traj_end: jax.Array, way_steps: float, max_len: int, chunk: int = 1024) -> jax.Array:
+    """GAS's subgoal for each state: int32 ``[N]``, the first state ``j >= i`` of its trajectory at
+    ``||f_j - f_i|| >= way_steps``, else the trajectory's last. Its policy's goal for state ``i`` is
+    ``min(i + Geometric(1 - discount), waystep[i])``. Shapes as :func:`efficient_states`."""
+    traj_end = jnp.asarray(traj_end, jnp.int32)
+    offsets = jnp.arange(0, max_len, dtype=jnp.int32)
+    return _per_state(lambda i: _first_far(f, traj_end, i, way_steps, offsets), f.shape[0], chunk)
 
 
 @struct.dataclass
