@@ -148,9 +148,18 @@ def test_vmapped_seeds_equal_separate_runs_and_resume_after_an_interrupt(tmp_pat
     logs = []
     fit.train_seeds(method, cfgs, data, cut, keys, progress=False, log=logs.append)
     assert logs == ['gcivl: 2 seed(s) complete at step 200, not trained again']
-    with pytest.raises(ValueError, match='another config'):
+    # a resume checks each folder as a single run's resume does: every differing field named ...
+    with pytest.raises(ValueError, match=rf'other settings \(saved vs asked\): batch_size: {cfgs[0].batch_size} vs 8'):
         fit.train_seeds(method, [c.__class__(**{**c.to_dict(), 'batch_size': 8}) for c in cfgs], data, cut, keys,
                         progress=False, **QUIET)
+    # ... and a config.json that disagrees with what its checkpoint holds
+    for o in cut:
+        meta = json.loads(open(os.path.join(o, 'config.json')).read())
+        meta['config']['lr'] = 0.5
+        open(os.path.join(o, 'config.json'), 'w').write(json.dumps(meta))
+    edited = [c.__class__(**{**c.to_dict(), 'lr': 0.5}) for c in cfgs]
+    with pytest.raises(ValueError, match='config.json disagrees with the config saved in checkpoint 200'):
+        fit.train_seeds(method, edited, data, cut, keys, progress=False, **QUIET)
     with pytest.raises(ValueError, match='differ in more than their seed'):
         fit.train_seeds(method, [cfgs[0], cfgs[1].__class__(**{**cfgs[1].to_dict(), 'steps': 100})], data,
                         [str(tmp_path / 'x0'), str(tmp_path / 'x1')], keys, progress=False, **QUIET)

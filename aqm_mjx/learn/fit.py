@@ -259,7 +259,6 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
     return state, step
 
 
-#: Metrics shown on the training bar (first seed), by the label they get there: AQM's, then the baselines' losses.
 def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs: list[str], keys: jax.Array,
                 dataset_path: Optional[str] = None, progress: bool = True, log=print) -> list[Trained]:
     """Train ``S`` seeds of one method as one vmapped program, each into its own run folder.
@@ -302,16 +301,16 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) ->
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
     data_sha = fingerprint(data)
     done = [checkpoint_steps(o) for o in outs]
-    for o, d in zip(outs, done):
-        if d:
-            _, saved, meta = read_meta(o)
+    for o, d, c in zip(outs, done, cfgs):
+        if d:  # the checks of a single run's resume: data, every config field named, config.json against the checkpoint
+            _, _, meta = read_meta(o)
             check_same_data(o, meta, data_sha, dataset_path)
-            if meta.get('method') != method.name or (meta['obs_size'], meta['action_size']) != (obs_size, action_size):
-                raise ValueError(f'{o} holds a {meta.get("method")} run on {meta["obs_size"]}-d observations; '
-                                 f'this is {method.name} on {obs_size}-d: choose another folder')
-            if dataclasses.replace(saved, seed=0, steps=cfg.steps) != dataclasses.replace(cfg, seed=0):
-                raise ValueError(f'{o} was trained with another config than this one (more steps may be asked '
-                                 f'for, nothing else); choose another folder')
+            check_resumable(o, method.name, dataclasses.replace(c, steps=max(c.steps, max(d))), obs_size, action_size)
+            saver = ckpt.Checkpointer(o, keep=None, create=False)
+            try:
+                check_against_checkpoint(o, meta, saver)
+            finally:
+                saver.close()
     if all(d and max(d) >= cfg.steps for d in done):
         log(f'{method.name}: {n} seed(s) complete at step {cfg.steps}, not trained again')
         return [load(o, log=log) for o in outs]

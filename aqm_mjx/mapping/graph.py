@@ -2,7 +2,7 @@
 
 Keypoints z_i, z_j are joined when ``d_sym(z_i, z_j) < tau``, with *both* directed edges weighted
 by their own time-to-reach ``d(z_i, z_j)`` and ``d(z_j, z_i)``. ``tau = 2 delta`` by default (the
-paper's proxy for ``2 (delta + eps)``), optionally times ``1 + slack``. Optional parent edges (each
+paper's proxy for ``2 (delta + eps)``) unless ``tau`` is given. Optional parent edges (each
 keypoint to the one it attached to during IWE) make the graph connected by construction.
 Weights are a dense ``[K, K]`` matrix, ``inf`` where there is no edge, 0 on the valid diagonal.
 """
