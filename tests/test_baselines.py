@@ -13,7 +13,7 @@ from aqm_mjx.data import dataset as dsm
 from aqm_mjx.data import goals, synthetic
 from aqm_mjx.learn import fit, losses, methods, networks, policy
 
-BASELINES = ('gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw')
+BASELINES = ('gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw', 'hilp')
 
 
 # ------------------------------------------------------------------------------- losses by hand

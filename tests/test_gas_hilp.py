@@ -106,3 +106,33 @@ def test_waystep_indices_by_hand():
     f = np.concatenate([_line([0, 1, 2, 1, 0, -1, -2]), _line([0, 1, 2, 2.5])])
     idx = gas_nodes.waystep_indices(jnp.asarray(f), jnp.asarray(_ends([7, 4])), 2, max_len=7)
     np.testing.assert_array_equal(idx, [2, 5, 4, 5, 6, 6, 6, 9, 10, 10, 10])
+
+
+def test_hilp_rewards_progress_along_its_direction_and_steers_by_the_goal_direction():
+    import jax
+
+    from aqm_mjx.data import dataset as dsm
+    from aqm_mjx.data import goals, synthetic
+    from aqm_mjx.learn import methods
+    from aqm_mjx.learn.baselines import hilp
+
+    np.testing.assert_allclose(hilp.unit(jnp.array([[3.0, 4.0], [0.0, 0.0]])), [[0.6, 0.8], [0.0, 0.0]])
+    m = methods.get('hilp')
+    cfg = m.preset('ci', env='pointmaze-medium')
+    learner = m.make(cfg, 2, 2)
+    state = learner.init(jax.random.PRNGKey(0))
+    params = learner.params(state)
+    value = learner.modules['value']
+    phi = lambda o: value.apply(params['value'], o, method='phi')  # noqa: E731
+    # the intrinsic reward is the progress (phi(s') - phi(s)) . z along the loss's own random directions
+    ds = dsm.to_device(synthetic.point_walks(n_traj=20, t_len=60))
+    batch = goals.sample_gc(ds, jax.random.PRNGKey(1), 64, cfg.sampling)
+    key = jax.random.PRNGKey(2)
+    _, info = learner.loss(params, state.target, batch, key)
+    z = hilp.unit(jax.random.normal(key, (64, cfg.latent)))
+    r = jnp.sum((phi(batch.next_observations) - phi(batch.observations)) * z, axis=-1)
+    np.testing.assert_allclose(float(info['skill/reward_mean']), float(jnp.mean(r)), rtol=1e-5)
+    # at test time the actor is given the unit direction from phi(s) to phi(g)
+    obs, goal = jnp.array([0.5, -1.0]), jnp.array([8.0, 3.0])
+    want = learner.modules['actor'].apply(params['actor'], obs, hilp.unit(phi(goal) - phi(obs)))[0]
+    np.testing.assert_allclose(learner.agent(params).controller(params, obs, goal, 0, None), want, rtol=1e-6)
