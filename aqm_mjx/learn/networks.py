@@ -37,19 +37,22 @@ def default_init(scale: float = 1.0):
 
 
 class MLP(nn.Module):
-    """``[..., D_in] -> [..., hidden[-1]]``: Dense, then GELU and (optionally) LayerNorm after every
-    layer but the last (after the last too when ``activate_final``)."""
+    """``[..., D_in] -> [..., hidden[-1]]``: Dense, then the activation (GELU, OGBench's; HILP's actor:
+    ReLU) and (optionally) LayerNorm after every layer but the last (after the last too when
+    ``activate_final``)."""
 
     hidden: Sequence[int]
     activate_final: bool = False
     layer_norm: bool = False
+    activation: str = 'gelu'  # 'gelu' or 'relu'
 
     @nn.compact
     def __call__(self, x):
+        act = {'gelu': nn.gelu, 'relu': nn.relu}[self.activation]
         for i, size in enumerate(self.hidden):
             x = nn.Dense(size, kernel_init=default_init())(x)
             if i + 1 < len(self.hidden) or self.activate_final:
-                x = nn.gelu(x)
+                x = act(x)
                 if self.layer_norm:
                     x = nn.LayerNorm()(x)
         return x
@@ -65,16 +68,17 @@ class Actor(nn.Module):
     """Goal-conditioned Gaussian actor: ``(obs [..., D], goal_in [..., G]) -> (mean [..., A], log_std [..., A])``.
 
     The mean is unbounded (no tanh); evaluation clips it to [-1, 1]. ``const_std``: log-std 0, else
-    a learned state-independent log-std clipped to [-5, 2].
+    a learned state-independent log-std clipped to [-5, 2]. ``activation``: the MLP's (:class:`MLP`).
     """
 
     hidden: Sequence[int]
     action_size: int
     const_std: bool = True
     final_scale: float = 1e-2
+    activation: str = 'gelu'
 
     def setup(self):
-        self.actor_net = MLP(tuple(self.hidden), activate_final=True)
+        self.actor_net = MLP(tuple(self.hidden), activate_final=True, activation=self.activation)
         self.mean_net = nn.Dense(self.action_size, kernel_init=default_init(self.final_scale))
         if not self.const_std:
             self.log_stds = self.param('log_stds', nn.initializers.zeros, (self.action_size,))

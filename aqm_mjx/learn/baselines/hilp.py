@@ -6,7 +6,8 @@ navigation, as its public code trains it (``hilp_gcrl/src/agents/hilp.py``):
   rewards (:func:`~aqm_mjx.learn.losses.ivl_value_loss`, expectile 0.95), with a target copy;
 - a latent-conditioned policy ``pi(a | s, z)`` for unit directions ``z`` drawn at random per
   transition, rewarded by the progress ``(phi(s') - phi(s)) . z`` along them (``phi`` held fixed):
-  IQL's value and twin critic on ``(s, z)`` (no terminal) and an AWR actor (temperature 10);
+  IQL's value and twin critic on ``(s, z)`` (no terminal) and an AWR actor (temperature 10; a ReLU
+  MLP without LayerNorm and a learned log-std, as ``jaxrl_m``'s ``Policy``);
 - at test time the direction to the goal, ``z = (phi(g) - phi(s)) / ||phi(g) - phi(s)||``.
 
 HILP's test-time planning (midpoints between the state and the goal among dataset states) is not
@@ -52,7 +53,7 @@ def make(cfg: HILPConfig, obs_size: int, action_size: int):
     value = networks.HilbertValue(cfg.value_hidden, cfg.latent, cfg.layer_norm)
     skill_value = networks.Value(cfg.value_hidden, cfg.layer_norm, heads=1)
     skill_critic = networks.Value(cfg.value_hidden, cfg.layer_norm, heads=2)
-    actor = networks.Actor(cfg.actor_hidden, action_size, cfg.const_std)
+    actor = networks.Actor(cfg.actor_hidden, action_size, cfg.const_std, activation='relu')  # jaxrl_m's Policy MLP
     x, _, a = base.example_inputs(obs_size, action_size, cfg)
     z0 = jnp.zeros((1, cfg.latent))
 
