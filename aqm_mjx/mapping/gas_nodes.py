@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from aqm_mjx.mapping.graph import components
+
 
 def _cosine(u: jax.Array, v: jax.Array) -> jax.Array:
     """Cosine of ``u, v [..., D]`` with GAS's 1e-10 guard on each norm."""
@@ -132,20 +134,6 @@ def td_aware_clustering(f: jax.Array, keep: jax.Array, way_steps: int, max_nodes
     return Nodes(centers=centers, mask=mask, count=count, assign=assign, overflow=overflow)
 
 
-def _components(adj: jax.Array, valid: jax.Array) -> jax.Array:
-    """Connected components of a symmetric ``adj [M, M]``: int32 ``[M]`` the smallest node index of each
-    node's component (``M`` where not valid)."""
-    m = adj.shape[0]
-    init = jnp.where(valid, jnp.arange(m), m).astype(jnp.int32)
-
-    def spread(c):
-        labels, _ = c
-        new = jnp.minimum(labels, jnp.min(jnp.where(adj, labels[None, :], m), axis=1)).astype(jnp.int32)
-        return jnp.where(valid, new, m), jnp.any(new != labels)
-
-    return jax.lax.while_loop(lambda c: c[1], spread, (init, jnp.bool_(True)))[0]
-
-
 def gas_edges(centers: jax.Array, mask: jax.Array, way_steps: float) -> jax.Array:
     """GAS's graph on its nodes: weights ``[M, M]`` (``inf``: no edge, 0 on the valid diagonal).
 
@@ -161,13 +149,15 @@ def gas_edges(centers: jax.Array, mask: jax.Array, way_steps: float) -> jax.Arra
     adj = pair & off & (d <= way_steps)
     first = jnp.argmax(mask)
 
-    def join(c):
-        adj, labels = c
-        main = labels == labels[first]
-        gap = jnp.where(main[:, None] & ~main[None, :] & mask[None, :] & mask[:, None], d, jnp.inf)
-        i, j = jnp.unravel_index(jnp.argmin(gap), gap.shape)
-        adj = adj.at[i, j].set(True).at[j, i].set(True)
-        return adj, _components(adj, mask)
+    def labelled(adj):
+        return (adj,) + components(jnp.where(adj, 0.0, jnp.inf), mask)  # (adj, labels, number of components)
 
-    adj, _ = jax.lax.while_loop(lambda c: jnp.any(mask & (c[1] != c[1][first])), join, (adj, _components(adj, mask)))
+    def join(c):
+        adj, labels, _ = c
+        main = labels == labels[first]
+        gap = jnp.where(main[:, None] & ~main[None, :] & pair, d, jnp.inf)
+        i, j = jnp.unravel_index(jnp.argmin(gap), gap.shape)
+        return labelled(adj.at[i, j].set(True).at[j, i].set(True))
+
+    adj = jax.lax.while_loop(lambda c: c[2] > 1, join, labelled(adj))[0]
     return jnp.where(adj, d, jnp.where(pair & ~off, 0.0, jnp.inf)).astype(jnp.float32)

@@ -81,7 +81,7 @@ def make(cfg: HILPConfig, obs_size: int, action_size: int):
         next_v = skill_value.apply(fixed['skill_value'], s1, z)
         l_c, c_info = losses.iql_critic_loss(skill_critic.apply(params['skill_critic'], s, z, act), next_v, r,
                                              jnp.ones_like(r), cfg.skill_discount)
-        adv = jnp.min(q_target, axis=0) - skill_value.apply(fixed['skill_value'], s, z)
+        adv = jnp.min(q_target, axis=0) - jax.lax.stop_gradient(v)
         mean, log_std = actor.apply(params['actor'], s, z)
         l_a, a_info = losses.awr_actor_loss(policy.log_prob(mean, log_std, act), adv, cfg.skill_temperature,
                                             prefix='skill_actor')
