@@ -24,7 +24,7 @@ from aqm_mjx.evaluation import plots, report
 from aqm_mjx.evaluation.evaluate import calibrate_then_evaluate, device_mesh, make_program
 from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit
-from aqm_mjx.mapping.build import trimmed_map
+from aqm_mjx.mapping.build import method_map
 from aqm_mjx.pipeline import RunConfig, stage_keys
 
 
@@ -80,15 +80,16 @@ def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig
                       agent_cfg, chunk], sort_keys=True)
     if sig not in programs:
         steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans,
-                              patience=cfg.agent.patience).steps
+                              patience=cfg.agent.patience, own_rule=trained.agent.rule is not None).steps
         programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh(), cfg.protocol.backend,
                                      cfg.protocol.workers)
     return programs[sig]
 
 
-def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, variants: dict, k_map, k_eval,
+def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, variants: dict, k_map, k_eval,
                      out: str, info: dict, log=print, programs: Optional[dict] = None, train_layout=None):
-    """The map from ``observations`` and the protocol for a trained method, then the report in
+    """The map from the dataset's arrays ``data`` (``observations``, ``terminals``) and the protocol for a
+    trained method, then the report in
     ``out`` (``results.json`` and pictures). With ``cfg.protocol.calibrate`` ('fixed' or 'stall')
     a calibration pass on the training layout (``train_layout``, default the maze's) sets the AQM
     row's budget first (:func:`~aqm_mjx.evaluation.evaluate.calibrate_then_evaluate`; recorded as
@@ -96,16 +97,16 @@ def map_and_evaluate(trained: fit.Trained, env, observations, cfg: RunConfig, va
     chunks across calls (several seeds of a method). Returns ``(Results, report dict)``."""
     agent = trained.agent
     if agent.plans:
-        graph, m = trimmed_map(agent, observations, cfg.map, k_map)
+        graph, m = method_map(agent, data, cfg.map, k_map)
     else:  # a flat method: no quasimetric, no map
         graph, m = None, dict(keypoints=0, overflow=False, seconds=0.0)
         log(f'{trained.method} has no quasimetric: no map, its controller is evaluated flat')
     if m['overflow']:
         log(f'warning: {cfg.map.max_keypoints} keypoints did not cover the candidates at delta {cfg.map.delta}; '
             'raise --max-keypoints or --delta')
-    n_agents = 1 + len(cfg.protocol.ablations) if agent.plans else 1
+    n_agents = 1 + len(cfg.protocol.ablations) if agent.prunes else 1
     log(f'{env.name}, {trained.method} {trained.config.preset} preset at step {trained.step}: {m["keypoints"]} '
-        f'keypoints at delta {cfg.map.delta} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
+        f'{"nodes (its own map)" if agent.mapper else f"keypoints at delta {cfg.map.delta}"} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
         f'{len(cfg.protocol.tasks) or env.num_tasks} tasks x {cfg.protocol.episodes} episodes on '
         f'{jax.device_count()} device(s)')
     owned = programs is None  # the calibration pass and the evaluation share one compiled chunk
@@ -204,7 +205,7 @@ def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, datase
     data = read_data(path, env)
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
     info = dict(checkpoint=os.path.abspath(checkpoint), dataset=os.path.abspath(path), seed=seed)
-    return map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval, out, info, log)
+    return map_and_evaluate(trained, env, data, cfg, variants, k_map, k_eval, out, info, log)
 
 
 def checkpoint_labels(checkpoints, names) -> list[str]:
@@ -236,14 +237,14 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
     files.check_writable(out, EVAL_OUTPUT_BYTES * (len(checkpoints) + 1),  # before any map or episode
                          'the evaluation\'s results and pictures')
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
-    table, per, programs, observations = {}, {}, {}, {}
+    table, per, programs, datasets = {}, {}, {}, {}
     for label, ckpt, (env, variants, c, path) in zip(labels, checkpoints, prepared):
         log(f'== {label} ({ckpt})')
         trained = fit.load(ckpt, log=log)
-        if path not in observations:  # checkpoints of one dataset (seeds of a method) read it once
-            observations[path] = read_data(path, env)['observations']
+        if path not in datasets:  # checkpoints of one dataset (seeds of a method) read it once
+            datasets[path] = read_data(path, env)
         info = dict(checkpoint=os.path.abspath(ckpt), dataset=os.path.abspath(path), seed=seed)
-        res, rep = map_and_evaluate(trained, env, observations[path], c, variants, k_map, k_eval,
+        res, rep = map_and_evaluate(trained, env, datasets[path], c, variants, k_map, k_eval,
                                     os.path.join(out, label), info, log, programs)
         per[label] = dict(checkpoint=os.path.abspath(ckpt), method=trained.method, step=trained.step,
                           keypoints=rep['keypoints'])

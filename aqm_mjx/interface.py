@@ -21,17 +21,30 @@ class Agent(NamedTuple):
             baselines): no map is built for it and it is evaluated as a flat controller.
         controller: ``(aux, obs [D], subgoal_obs [D], t, key) -> action [A]``.
         aux: the pytree the functions read (parameters, tables); None while not bound.
+        rule: a method's own test-time rule, ``(agent, AgentConfig) -> Decide``
+            (:class:`aqm_mjx.agent.rollout.Decide`; GAS's :mod:`aqm_mjx.agent.gas_rule`); None: AQM's
+            rules (:mod:`aqm_mjx.agent.rules`, budgets and pruning, with their ablation rows).
+        mapper: a method's own map, ``(aux, observations [N, D], traj_end [N], max_len) -> (Graph,
+            count, overflow)`` from every dataset state (jittable, ``max_len`` static: the longest
+            trajectory); None: keypoints (:mod:`aqm_mjx.mapping.build`).
     """
 
     encode: Callable
     dist: Callable
     controller: Callable
     aux: Any = None
+    rule: Any = None
+    mapper: Any = None
 
     @property
     def plans(self) -> bool:
         """Whether the agent has a quasimetric to map and plan with."""
         return self.dist is not None
+
+    @property
+    def prunes(self) -> bool:
+        """Whether the agent runs AQM's rules (budgets, pruning, calibration, their ablation rows)."""
+        return self.plans and self.rule is None
 
     def bind(self, aux: Any) -> 'Agent':
         """The same functions with parameters ``aux``."""

@@ -123,10 +123,11 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
     learner = methods.get(cfg.method).make(cfg.train, env.obs_size, env.action_size)
     agent = learner.agent()  # parameters come from training, inside run
     episodes = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=agent.plans,
-                                   patience=cfg.agent.patience, cut_slack=cfg.agent.cut_slack)
+                                   patience=cfg.agent.patience, cut_slack=cfg.agent.cut_slack,
+                                   own_rule=agent.rule is not None)
     rollout = make_rollout(env, agent, cfg.agent, episodes.steps)
-    rule = cfg.protocol.calibrate if agent.plans else 'none'
-    calibrates = agent.plans and proto.needs_calibration(cfg.protocol)
+    rule = cfg.protocol.calibrate if agent.prunes else 'none'
+    calibrates = agent.prunes and proto.needs_calibration(cfg.protocol)
     if calibrates:  # the calibration pass: no pruning, training layout, cells no task uses, its own key
         cal_episodes = proto.calibration_episodes(env, cfg.protocol)
         aqm_rows = episodes.table.agent == 0  # the AQM row is the first agent of the table
@@ -137,7 +138,10 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         state, metrics = fit.train_scan(learner, k_train, ds, progress)
         params = learner.params(state)
         # MAP: keypoints and graph from dataset states (none for a method without a quasimetric)
-        if agent.plans:
+        if agent.mapper is not None:  # a method's own map (GAS's) from every state; trajectories of the
+            # collector's length at most (env.max_episode_steps + 1 states)
+            graph, count, overflow = agent.mapper(params, ds.observations, ds.traj_end, env.max_episode_steps + 1)
+        elif agent.plans:
             graph, kp = build_map(agent, ds.observations, cfg.map, k_map, params)
             count, overflow = kp.count, kp.overflow
         else:

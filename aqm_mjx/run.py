@@ -88,7 +88,7 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
         t0 = time.perf_counter()
         log('[3/4 map] and [4/4 evaluate]')
         info = dict(checkpoint=os.path.abspath(tdir), dataset=os.path.abspath(path), seed=seed)
-        res, rep = map_and_evaluate(trained, env, data['observations'], cfg, variants, k_map, k_eval,
+        res, rep = map_and_evaluate(trained, env, data, cfg, variants, k_map, k_eval,
                                     os.path.join(out, 'eval'), info, log)
         times['map_and_evaluate_s'] = time.perf_counter() - t0
         summary_ = dict(env=env_name, seed=seed, config=cfg.to_dict(), dataset=os.path.abspath(path),

@@ -90,6 +90,8 @@ class Decide(NamedTuple):
 def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
     """The PLAN and ACT half of a control step of ``agent`` (see :func:`make_rollout`)."""
     slots = cfg.slots
+    if agent.rule is not None:  # a method's own rule (GAS's)
+        return agent.rule(agent, cfg)
     if agent.dist is None:
         def init_flat(aux, graph, obs, goal, inputs):
             return ()
@@ -187,7 +189,7 @@ def plan_outputs(agents, b: int, xp=np) -> dict:
     """The agent-state outputs of a rollout: ``pruned [B]``, ``removed [B]``, ``cuts [B, MAX_CUTS, 2]``,
     ``legs [B, MAX_LEGS, LEG_FIELDS]``, ``n_legs [B]`` from ``agents``, or nothing pruned, cut or logged for an agent
     without a quasimetric (``agents == ()``). ``xp``: ``jnp`` inside a program, ``np`` on the host."""
-    if isinstance(agents, tuple):
+    if not hasattr(agents, 'pruned'):  # no quasimetric (``()``), or a rule that never prunes (GAS's)
         return dict(pruned=xp.zeros((b,), xp.int32), removed=xp.zeros((b,), xp.int32),
                     cuts=xp.full((b, MAX_CUTS, 2), -1, xp.int32), legs=xp.full((b, MAX_LEGS, LEG_FIELDS), -1.0, xp.float32),
                     n_legs=xp.zeros((b,), xp.int32))

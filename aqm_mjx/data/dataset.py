@@ -207,13 +207,18 @@ class Dataset:
         return int(self.observations.shape[0])
 
 
+def trajectory_ends(terminals) -> np.ndarray:
+    """int32 ``[N]``: for each state, the index of the last state of its trajectory (``terminals [N]``,
+    the last state terminal, as :func:`validate` checks)."""
+    ends = np.flatnonzero(np.asarray(terminals).astype(bool, copy=False))
+    return ends[np.searchsorted(ends, np.arange(len(terminals)))].astype(np.int32)
+
+
 def to_device(data: dict, device=None) -> Dataset:
     """Put raw arrays (from :func:`read_ogbench` or a collector) on device, one copy each."""
     validate(data)
     term = np.asarray(data['terminals']).astype(bool, copy=False)
-    n = len(term)
-    ends = np.flatnonzero(term)
-    traj_end = ends[np.searchsorted(ends, np.arange(n))].astype(np.int32)
+    traj_end = trajectory_ends(term)
     sources = np.flatnonzero(~term).astype(np.int32)
     if len(sources) == 0:
         raise DatasetError('dataset has no transitions (every state is a trajectory end)')

@@ -142,7 +142,8 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
         episodes: an episode table to run instead of the protocol's (the calibration pass's).
     """
     eps = episodes if episodes is not None else proto.plan_episodes(
-        env, protocol, cfg.kappa, variants, plans=agent.plans, patience=cfg.patience, cut_slack=cfg.cut_slack)
+        env, protocol, cfg.kappa, variants, plans=agent.plans, patience=cfg.patience, cut_slack=cfg.cut_slack,
+        own_rule=agent.rule is not None)
     table = eps.table
     mesh = device_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
@@ -237,10 +238,10 @@ def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol
         ValueError: nothing asks for a calibration, or the agent has no quasimetric (no budgets).
     """
     rule = protocol.calibrate
-    if not proto.needs_calibration(protocol) or not agent.plans:
+    if not proto.needs_calibration(protocol) or not agent.prunes:
         raise ValueError('calibration_pass: nothing to calibrate ' + (
-            "(protocol.calibrate is 'none' and no row is calibrated)" if agent.plans
-            else '(the agent has no quasimetric, so no budgets)'))
+            "(protocol.calibrate is 'none' and no row is calibrated)" if agent.prunes
+            else '(the agent runs no budgets: no quasimetric, or a rule of its own)'))
     eps = proto.calibration_episodes(env, protocol, layout)
     res = evaluate(env, agent, graph, dataclasses.replace(cfg, kappa=math.inf, patience=0.0),
                    proto.calibration_protocol(protocol), key=jax.random.fold_in(key, proto.CALIBRATION_FOLD),
@@ -266,7 +267,7 @@ def calibrate_then_evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, p
     called between the two (a log line). Returns ``(Results, calibration dict or None)``; the one
     program (:func:`aqm_mjx.pipeline.make_run`) does the same inside its jitted run."""
     cal, budgets = None, None
-    if agent.plans and proto.needs_calibration(protocol):
+    if agent.prunes and proto.needs_calibration(protocol):
         cal = calibration_pass(env, agent, graph, cfg, protocol, key, layout=layout, mesh=mesh, progress=progress,
                                program=program)
         cfg, budgets = dataclasses.replace(cfg, kappa=cal['kappa'], patience=cal['patience']), cal['budgets']

@@ -32,6 +32,7 @@ from aqm_mjx.config import option
 from aqm_mjx.envs import mazes
 
 AQM, FLAT, NO_PRUNING = 'aqm', 'flat', 'no-pruning'
+GRAPH = 'graph'  # the one row of a method with its own test-time rule (GAS's planner, no budgets)
 PAPER_CAL = 'paper=cal'  # the paper's rule at the kappa calibrated on keypoint edges
 BACKENDS = ('mjx', 'ogbench')
 CALIBRATE = ('none', 'fixed', 'stall')  # ProtocolConfig.calibrate: which budget a calibration pass sets
@@ -117,13 +118,16 @@ class Row(NamedTuple):
 
 
 def agent_specs(kappa: float, ablations, plans: bool = True, patience: float = 0.0,
-                cut_slack: float = 0.0) -> list[Row]:
+                cut_slack: float = 0.0, own_rule: bool = False) -> list[Row]:
     """The rows of the table: the AQM agent at ``kappa``, ``patience`` (0: the fixed budget) and
     ``cut_slack`` first, then the ablations (``'kappa=X'``: the fixed budget at X; ``'stall=P'``: the
     stall rule at patience P, with the AQM row's kappa; both with the AQM row's parallel cuts;
     ``'paper=X'``: the paper's rule, a fixed budget (1 + X) d on keypoint edges alone, one cut per
     overrun; ``'paper=cal'``: the same at the kappa a calibration pass gives for keypoint edges);
-    for a method without a quasimetric (``plans`` False) the flat controller alone."""
+    for a method without a quasimetric (``plans`` False) the flat controller alone; for a method with
+    a rule of its own (``own_rule``: GAS's) its planner alone, unbudgeted (:data:`GRAPH`)."""
+    if own_rule:
+        return [Row(GRAPH, math.inf, True, 0.0)]
     if not plans:
         return [Row(FLAT, math.inf, False, 0.0)]
     out = [Row(AQM, float(kappa), True, float(patience), cut_slack=float(cut_slack))]
@@ -214,7 +218,7 @@ class Episodes(NamedTuple):
 
 
 def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optional[dict] = None,
-                  plans: bool = True, patience: float = 0.0, cut_slack: float = 0.0) -> Episodes:
+                  plans: bool = True, patience: float = 0.0, cut_slack: float = 0.0, own_rule: bool = False) -> Episodes:
     """Validate the layouts and task ids of an evaluation and lay out its episode table
     (``kappa``, ``patience``, ``cut_slack``: the AQM agent's budget slack, rule and parallel cuts;
     ``plans`` False: a method without a quasimetric, one flat row). The episode keys do not depend
@@ -226,7 +230,7 @@ def plan_episodes(env, protocol: ProtocolConfig, kappa: float, variants: Optiona
     bad = [t for t in task_ids if t not in valid_ids]
     if bad:
         raise ValueError(f'task ids {bad} do not exist in maze {env.maze!r} (it has {sorted(valid_ids)})')
-    specs = agent_specs(kappa, protocol.ablations, plans, patience, cut_slack)
+    specs = agent_specs(kappa, protocol.ablations, plans, patience, cut_slack, own_rule)
     table = episode_table(specs, len(grids), task_ids, protocol.episodes)
     return Episodes(variants, grids, task_ids, specs, table, int(protocol.horizon or env.max_episode_steps),
                     protocol.split)

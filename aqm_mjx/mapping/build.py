@@ -14,10 +14,12 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from aqm_mjx import config as cfg_lib
 from aqm_mjx import presets
 from aqm_mjx.config import option
+from aqm_mjx.data.dataset import trajectory_ends
 from aqm_mjx.interface import Agent
 from aqm_mjx.mapping import keypoints as kps
 from aqm_mjx.mapping.graph import Graph, build_graph, trim
@@ -140,3 +142,24 @@ def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array) -> t
     n_kp = int(kp.count)
     graph = trim(graph, min(cfg.max_keypoints, -(-n_kp // 8) * 8))
     return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), seconds=time.perf_counter() - t0)
+
+
+@functools.lru_cache(maxsize=8)
+def _jitted_mapper(mapper, max_len: int):
+    return jax.jit(lambda aux, obs, ends: mapper(aux, obs, ends, max_len))
+
+
+def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array) -> tuple[Graph, dict]:
+    """The map an agent plans on, from a dataset's arrays (``observations``, ``terminals``): the
+    method's own (``agent.mapper``, GAS's, from every state) or keypoints (:func:`trimmed_map`), trimmed
+    to the node count rounded up to 8. Returns :func:`trimmed_map`'s ``(graph, info)``."""
+    if agent.mapper is None:
+        return trimmed_map(agent, data['observations'], cfg, key)
+    t0 = time.perf_counter()
+    ends = trajectory_ends(data['terminals'])
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(ends)) + 1])
+    build = _jitted_mapper(agent.mapper, int(np.max(ends[starts] - starts + 1)))
+    graph, count, overflow = build(agent.aux, jnp.asarray(data['observations'], jnp.float32), jnp.asarray(ends))
+    n = int(count)
+    graph = trim(graph, min(graph.mask.shape[0], max(8, -(-n // 8) * 8)))
+    return graph, dict(keypoints=n, overflow=bool(overflow), seconds=time.perf_counter() - t0)

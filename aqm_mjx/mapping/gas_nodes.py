@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from aqm_mjx.mapping.graph import components
+from aqm_mjx.mapping.graph import Graph, components
 
 
 def _cosine(u: jax.Array, v: jax.Array) -> jax.Array:
@@ -161,3 +161,35 @@ def gas_edges(centers: jax.Array, mask: jax.Array, way_steps: float) -> jax.Arra
 
     adj = jax.lax.while_loop(lambda c: c[2] > 1, join, labelled(adj))[0]
     return jnp.where(adj, d, jnp.where(pair & ~off, 0.0, jnp.inf)).astype(jnp.float32)
+
+
+def representatives(f: jax.Array, nodes: Nodes) -> jax.Array:
+    """int32 ``[M]``: per node, its member state nearest its centre (the lowest index on ties; 0 for
+    an empty slot), the observation a picture draws for it."""
+    m = nodes.centers.shape[0]
+    member = nodes.assign >= 0
+    seg = jnp.where(member, nodes.assign, m)
+    d = jnp.where(member, jnp.linalg.norm(f - nodes.centers[jnp.maximum(nodes.assign, 0)], axis=-1), jnp.inf)
+    best = jax.ops.segment_min(d, seg, num_segments=m + 1)
+    idx = jnp.arange(f.shape[0], dtype=jnp.int32)
+    first = jax.ops.segment_min(jnp.where(member & (d <= best[seg]), idx, f.shape[0]), seg, num_segments=m + 1)[:m]
+    return jnp.where(nodes.mask, jnp.minimum(first, f.shape[0] - 1), 0).astype(jnp.int32)
+
+
+def gas_graph(f: jax.Array, observations: jax.Array, traj_end: jax.Array, way_steps: float, threshold: float,
+              max_nodes: int, max_len: int) -> tuple[Graph, Nodes]:
+    """GAS's whole map from TDR embeddings: TE filtering, TD-aware clustering, edges (pure, jittable).
+
+    Args:
+        f: ``[N, L]`` TDR embeddings of ``observations [N, D]``; traj_end: int32 ``[N]``.
+        way_steps: ``H``; threshold: TE filtering's cosine; max_nodes, max_len: static bounds.
+    Returns:
+        (:class:`~aqm_mjx.mapping.graph.Graph` with ``[max_nodes, ...]`` arrays: ``z`` the node
+        centres, ``obs`` each node's :func:`representatives` state, ``w`` :func:`gas_edges`, ``tau``
+        ``H``; the :class:`Nodes`).
+    """
+    keep = efficient_states(f, traj_end, way_steps, threshold, max_len)
+    nodes = td_aware_clustering(f, keep, way_steps, max_nodes)
+    w = gas_edges(nodes.centers, nodes.mask, way_steps)
+    obs = jnp.where(nodes.mask[:, None], observations[representatives(f, nodes)], 0.0)
+    return Graph(z=nodes.centers, obs=obs, mask=nodes.mask, w=w, tau=jnp.float32(way_steps)), nodes
