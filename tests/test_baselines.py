@@ -13,7 +13,7 @@ from aqm_mjx.data import dataset as dsm
 from aqm_mjx.data import goals, synthetic
 from aqm_mjx.learn import fit, losses, methods, networks, policy
 
-BASELINES = ('gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw', 'hilp')
+BASELINES = ('gcbc', 'gcivl', 'gciql', 'qrl', 'crl', 'hiql', 'saw', 'hilp')  # gas: tests/test_gas_hilp.py (two phases)
 
 
 # ------------------------------------------------------------------------------- losses by hand
@@ -311,7 +311,7 @@ def test_every_baseline_updates_to_finite_parameters_and_moves_its_targets(name)
 
 
 @pytest.mark.parametrize('name', [pytest.param(n, marks=pytest.mark.slow)
-                                  for n in BASELINES])
+                                  for n in BASELINES + ('gas',)])
 def test_baseline_resume_is_bit_identical(tmp_path, name):
     data = synthetic.point_walks(n_traj=20, t_len=60)
     m = methods.get(name)

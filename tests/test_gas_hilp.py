@@ -3,6 +3,7 @@
 import jax.numpy as jnp
 import numpy as np
 
+from aqm_mjx.learn.baselines import gas
 from aqm_mjx.mapping import gas_nodes
 
 
@@ -136,3 +137,106 @@ def test_hilp_rewards_progress_along_its_direction_and_steers_by_the_goal_direct
     obs, goal = jnp.array([0.5, -1.0]), jnp.array([8.0, 3.0])
     want = learner.modules['actor'].apply(params['actor'], obs, hilp.unit(phi(goal) - phi(obs)))[0]
     np.testing.assert_allclose(learner.agent(params).controller(params, obs, goal, 0, None), want, rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------------- GAS, the method
+def _gas_rule_case():
+    """Nodes on a line at x = 0, 4, 8, 12, 16 (one slot unused), edges between neighbours (weight 4), H = 5."""
+    from aqm_mjx.agent import plan
+
+    centers = jnp.asarray(np.concatenate([_line([0, 4, 8, 12, 16]), np.zeros((1, 2), np.float32)]))
+    mask = jnp.array([True] * 5 + [False])
+    w = np.full((6, 6), np.inf, np.float32)
+    for i in range(4):
+        w[i, i + 1] = w[i + 1, i] = 4.0
+    return centers, mask, plan.shortest_distances(jnp.asarray(w))
+
+
+def test_gas_rule_goal_attachment_start_and_furthest_path_node_by_hand():
+    from aqm_mjx.agent import gas_rule
+
+    centers, mask, dist = _gas_rule_case()
+    phi_g = jnp.array([17.0, 0.0])
+    # the goal at 17: distances 17, 13, 9, 5, 1 -> radius max(H = 5, 1.2 * 1) = 5, strictly: node 16 alone
+    att = gas_rule.goal_attachment(centers, mask, phi_g, 5.0)
+    np.testing.assert_allclose(att[:5], [np.inf, np.inf, np.inf, np.inf, 1.0])
+    assert np.isinf(att[5])
+    to_goal = gas_rule.distances_to_goal(dist, att)
+    np.testing.assert_allclose(to_goal[:5], [17.0, 13.0, 9.0, 5.0, 1.0])
+    # at x = 2.5: nodes 0 (2.5 away) and 4 (1.5) are within H; 4's total 1.5 + 13 beats 0's 2.5 + 17: start 4.
+    # Its path 4, 8, 12, 16 (then the goal); within H of x = 2.5: node 4 alone (8 is 5.5 away) -> node 1
+    start, final, node, z = gas_rule.target(dist, to_goal, centers, mask, jnp.array([2.5, 0.0]), phi_g,
+                                            jnp.int32(0), jnp.bool_(False), 5.0)
+    assert (int(start), bool(final), int(node)) == (1, False, 1)
+    np.testing.assert_allclose(z, [4.0, 0.0])
+    # at x = 7.5: start 8 (0.5 + 9 against 3.5 + 13); path nodes within 5: 4 (3.5), 8, 12 (4.5): the furthest, 12
+    start, final, node, z = gas_rule.target(dist, to_goal, centers, mask, jnp.array([7.5, 0.0]), phi_g,
+                                            start, final, 5.0)
+    assert (int(start), bool(final), int(node)) == (2, False, 3)
+    # far from every node (y = 9): the start stays, no path node within H -> the start itself
+    start2, _, node2, _ = gas_rule.target(dist, to_goal, centers, mask, jnp.array([7.5, 9.0]), phi_g,
+                                          start, final, 5.0)
+    assert (int(start2), int(node2)) == (2, 2)
+    # at x = 15: start 16, whose path is [16, goal]: the goal from now on, also back at x = 3
+    start, final, node, z = gas_rule.target(dist, to_goal, centers, mask, jnp.array([15.0, 0.0]), phi_g,
+                                            start, final, 5.0)
+    assert (int(start), bool(final), int(node)) == (4, True, -1)
+    np.testing.assert_allclose(z, phi_g)
+    _, final, node, _ = gas_rule.target(dist, to_goal, centers, mask, jnp.array([3.0, 0.0]), phi_g, start, final, 5.0)
+    assert bool(final) and int(node) == -1
+    np.testing.assert_allclose(gas_rule.skill(jnp.array([1.0, 1.0]), jnp.array([4.0, 5.0])), [0.6, 0.8], rtol=1e-6)
+
+
+def test_gas_actor_goal_is_the_geometric_offset_capped_at_the_waystep_by_hand():
+
+
+    # window of 4 after each source (5 states); H = 2. Row 0: x = 0, 1, 2, 3, 4: waystep 2.
+    # Row 1: x = 0, .5, 1, 1.5, 1.9, trajectory going on: no waystep in the window -> its last state (4), not found.
+    # Row 2: x = 0, 1, 1, 1, 1 with the trajectory ending at offset 1 (clamped): waystep = the end (1), found.
+    f = jnp.stack([jnp.asarray(_line(r)) for r in ([0, 1, 2, 3, 4], [0, .5, 1, 1.5, 1.9], [0, 1, 1, 1, 1])])
+    index, end = jnp.array([10, 20, 30]), jnp.array([50, 50, 31])
+    off, found = gas.actor_goal_offsets(f, index, end, jnp.array([7, 7, 7]), 2)
+    np.testing.assert_array_equal(off, [2, 4, 1])
+    np.testing.assert_array_equal(found, [True, False, True])
+    off, _ = gas.actor_goal_offsets(f, index, end, jnp.array([1, 3, 1]), 2)  # a shorter geometric draw wins
+    np.testing.assert_array_equal(off, [1, 3, 1])
+
+
+def test_gas_trains_its_representation_then_its_policy_each_with_its_own_adam():
+    import jax
+
+    from aqm_mjx.data import dataset as dsm
+    from aqm_mjx.data import synthetic
+    from aqm_mjx.learn import fit, methods
+
+    m = methods.get('gas')
+    cfg = m.preset('ci', env='pointmaze-medium', steps=8, updates_per_call=2, log_every=2, checkpoint_every=2)
+    assert cfg.tdr_steps == 4
+    learner = m.make(cfg, 2, 2)
+    ds = dsm.to_device(synthetic.point_walks(n_traj=20, t_len=60))
+    s0 = learner.init(jax.random.PRNGKey(0))
+    run = jax.jit(fit.chunk_step(learner.update, 4))
+    s1, m1 = run(s0, ds)
+    s2, m2 = run(s1, ds)
+
+    def moved(a, b, n):
+        return any(bool(jnp.any(x != y)) for x, y in zip(jax.tree.leaves(a.params[n]), jax.tree.leaves(b.params[n])))
+
+    assert moved(s0, s1, 'tdr') and not any(moved(s0, s1, n) for n in gas.POLICY)
+    assert not moved(s1, s2, 'tdr') and all(moved(s1, s2, n) for n in gas.POLICY)
+    counts = lambda s, g: [int(x) for x in jax.tree.leaves(s.opt[g]) if getattr(x, 'dtype', None) == jnp.int32]  # noqa: E731
+    assert counts(s1, 'tdr') == [4] and counts(s1, 'policy') == [0]  # the policy's Adam starts at the switch
+    assert counts(s2, 'tdr') == [4] and counts(s2, 'policy') == [4]
+    assert float(m1['phase']) == 0.0 and float(m2['phase']) == 1.0 and float(m2['tdr/loss']) == 0.0
+    assert np.isfinite(float(m2['actor/loss'])) and float(m2['critic/loss']) > 0
+
+
+def test_gas_map_representatives_and_trajectory_ends():
+    from aqm_mjx.data.dataset import trajectory_ends
+
+    np.testing.assert_array_equal(trajectory_ends(np.array([0, 0, 1, 0, 1])), [2, 2, 2, 4, 4])
+    # members of node 0 at x = 0, 1.5 (centre 0.75: 1.5 is 0.75 away, 0 too: the lower index); node 1: 5, 6.5
+    f = jnp.asarray(_line([0, 1.5, 5, 100, 6.5, 5.5]))
+    nodes = gas_nodes.td_aware_clustering(f, jnp.array([True, True, True, False, True, True]), 4, max_nodes=3)
+    np.testing.assert_allclose(nodes.centers[:2, 0], [0.75, 17 / 3], rtol=1e-6)
+    np.testing.assert_array_equal(gas_nodes.representatives(f, nodes), [0, 5, 0])

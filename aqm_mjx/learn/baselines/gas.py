@@ -27,6 +27,7 @@ checkpoints and resumes as any other method.
 from __future__ import annotations
 
 import dataclasses
+import types
 
 import jax
 import jax.numpy as jnp
@@ -123,6 +124,13 @@ def actor_goal_offsets(f: jax.Array, index: jax.Array, end: jax.Array, geom: jax
 
 
 def make(cfg: GASConfig, obs_size: int, action_size: int) -> Learner:
+    """GAS's :class:`~aqm_mjx.learn.learner.Learner` (:func:`parts` has its pieces one by one)."""
+    return parts(cfg, obs_size, action_size).learner
+
+
+def parts(cfg: GASConfig, obs_size: int, action_size: int) -> types.SimpleNamespace:
+    """GAS's pieces: ``phi(params, obs [B, D]) -> [B, L]``, ``tdr_loss`` and ``policy_loss`` (each
+    ``(params, target, GASBatch, key) -> (loss, info)``), ``init``, ``step`` and the ``learner``."""
     tdr = networks.HilbertValue(cfg.value_hidden, cfg.latent, cfg.layer_norm)
     value = networks.Value(cfg.value_hidden, cfg.layer_norm, heads=1)
     critic = networks.Value(cfg.value_hidden, cfg.layer_norm, heads=2)
@@ -257,8 +265,10 @@ def make(cfg: GASConfig, obs_size: int, action_size: int) -> Learner:
     def params_of(state):
         return state.params
 
-    return Learner(config=cfg, init=init, update=update, params=params_of, agent=agent,
-                   modules={'tdr': tdr, 'value': value, 'critic': critic, 'actor': actor}, loss=loss, step=step)
+    learner = Learner(config=cfg, init=init, update=update, params=params_of, agent=agent,
+                      modules={'tdr': tdr, 'value': value, 'critic': critic, 'actor': actor}, loss=loss, step=step)
+    return types.SimpleNamespace(phi=phi, tdr_loss=tdr_loss, policy_loss=policy_loss, init=init, step=step,
+                                 learner=learner)
 
 
 def longest_trajectory(traj_end: np.ndarray) -> int:
