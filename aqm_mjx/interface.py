@@ -24,9 +24,10 @@ class Agent(NamedTuple):
         rule: a method's own test-time rule, ``(agent, AgentConfig) -> Decide``
             (:class:`aqm_mjx.agent.rollout.Decide`; GAS's :mod:`aqm_mjx.agent.gas_rule`); None: AQM's
             rules (:mod:`aqm_mjx.agent.rules`, budgets and pruning, with their ablation rows).
-        mapper: a method's own map, ``(aux, observations [N, D], traj_end [N], max_len) -> (Graph,
-            count, overflow)`` from every dataset state (jittable, ``max_len`` static: the longest
-            trajectory); None: keypoints (:mod:`aqm_mjx.mapping.build`).
+        mapper: a method's own map, ``(aux, observations [N, D], traj_end [N], max_len, key) -> (map,
+            count, overflow)`` from the dataset's states (jittable, ``max_len`` static: the longest
+            trajectory): a :class:`~aqm_mjx.mapping.graph.Graph` (GAS's) or the pytree its ``rule``
+            reads (HILP's planning states); None: keypoints (:mod:`aqm_mjx.mapping.build`).
     """
 
     encode: Callable
@@ -38,8 +39,8 @@ class Agent(NamedTuple):
 
     @property
     def plans(self) -> bool:
-        """Whether the agent has a quasimetric to map and plan with."""
-        return self.dist is not None
+        """Whether the agent plans on a map: a quasimetric to build keypoints with, or a map of its own."""
+        return self.dist is not None or self.mapper is not None
 
     @property
     def prunes(self) -> bool:

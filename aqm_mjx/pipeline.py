@@ -140,7 +140,8 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         # MAP: keypoints and graph from dataset states (none for a method without a quasimetric)
         if agent.mapper is not None:  # a method's own map (GAS's) from every state; trajectories of the
             # collector's length at most (env.max_episode_steps + 1 states)
-            graph, count, overflow = agent.mapper(params, ds.observations, ds.traj_end, env.max_episode_steps + 1)
+            graph, count, overflow = agent.mapper(params, ds.observations, ds.traj_end, env.max_episode_steps + 1,
+                                                  k_map)
         elif agent.plans:
             graph, kp = build_map(agent, ds.observations, cfg.map, k_map, params)
             count, overflow = kp.count, kp.overflow

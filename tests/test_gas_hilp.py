@@ -240,3 +240,24 @@ def test_gas_map_representatives_and_trajectory_ends():
     nodes = gas_nodes.td_aware_clustering(f, jnp.array([True, True, True, False, True, True]), 4, max_nodes=3)
     np.testing.assert_allclose(nodes.centers[:2, 0], [0.75, 17 / 3], rtol=1e-6)
     np.testing.assert_array_equal(gas_nodes.representatives(f, nodes), [0, 5, 0])
+
+
+def test_hilp_planning_midpoints_by_hand_and_without_planning_the_flat_agent():
+    from aqm_mjx.agent import hilp_rule
+    from aqm_mjx.learn import methods
+
+    # states at x = 0..10, from 0 toward 10: the 2 nearest of max(|x - 0|, |x - 10|) are 4, 6 (5 is missing):
+    # waypoint 5; again toward 5: max(|x|, |x - 5|) is smallest at 2 and 3: waypoint 2.5
+    z = jnp.asarray(_line([0, 1, 2, 3, 4, 6, 7, 8, 9, 10]))
+    s, g = jnp.array([0.0, 0.0]), jnp.array([10.0, 0.0])
+    np.testing.assert_allclose(hilp_rule.waypoint(z, s, g, 1, 2), [5.0, 0.0])
+    np.testing.assert_allclose(hilp_rule.waypoint(z, s, g, 2, 2), [2.5, 0.0])
+    np.testing.assert_allclose(hilp_rule.waypoint(z, s, g, 0, 2), g)
+    m = methods.get('hilp')
+    planning = m.make(m.preset('ci', env='pointmaze-medium'), 2, 2).agent()
+    assert planning.plans and not planning.prunes and planning.rule is not None and planning.dist is None
+    flat = m.make(m.preset('ci', env='pointmaze-medium', planning_recursions=0), 2, 2).agent()
+    assert not flat.plans and flat.rule is None
+    import pytest
+    with pytest.raises(ValueError, match='planning_knns'):
+        m.preset('ci', env='pointmaze-medium', planning_knns=600)

@@ -92,7 +92,7 @@ def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
     slots = cfg.slots
     if agent.rule is not None:  # a method's own rule (GAS's)
         return agent.rule(agent, cfg)
-    if agent.dist is None:
+    if not agent.plans:
         def init_flat(aux, graph, obs, goal, inputs):
             return ()
 
@@ -159,7 +159,7 @@ def make_rollout(env, agent: Agent, cfg: AgentConfig, steps: int, record_actions
         and ``goal_xy [B, 2]``.
     """
     decide = make_decide(agent, cfg)
-    plans = agent.dist is not None
+    plans = agent.plans
 
     def run(aux: Any, graph: Graph, inputs: EpisodeInputs):
         states = jax.vmap(env.reset)(inputs.keys[:, 0], inputs.task_ids, inputs.grids, inputs.cells)
@@ -209,7 +209,7 @@ def make_host_rollout(envs, agent: Agent, cfg: AgentConfig, steps: int, progress
     """
     decide = make_decide(agent, cfg)
     init, act = jax.jit(decide.init), jax.jit(decide.act)
-    plans = agent.dist is not None
+    plans = agent.plans
     seed_of = jax.jit(jax.vmap(lambda k: jax.random.randint(k, (), 0, jnp.iinfo(jnp.int32).max)))
 
     def run(aux: Any, graph, inputs: EpisodeInputs) -> dict:

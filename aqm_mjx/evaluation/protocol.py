@@ -32,7 +32,7 @@ from aqm_mjx.config import option
 from aqm_mjx.envs import mazes
 
 AQM, FLAT, NO_PRUNING = 'aqm', 'flat', 'no-pruning'
-GRAPH = 'graph'  # the one row of a method with its own test-time rule (GAS's planner, no budgets)
+PLANNER = 'planner'  # the one row of a method with its own test-time rule (GAS's, HILP's planning; no budgets)
 PAPER_CAL = 'paper=cal'  # the paper's rule at the kappa calibrated on keypoint edges
 BACKENDS = ('mjx', 'ogbench')
 CALIBRATE = ('none', 'fixed', 'stall')  # ProtocolConfig.calibrate: which budget a calibration pass sets
@@ -125,9 +125,9 @@ def agent_specs(kappa: float, ablations, plans: bool = True, patience: float = 0
     ``'paper=X'``: the paper's rule, a fixed budget (1 + X) d on keypoint edges alone, one cut per
     overrun; ``'paper=cal'``: the same at the kappa a calibration pass gives for keypoint edges);
     for a method without a quasimetric (``plans`` False) the flat controller alone; for a method with
-    a rule of its own (``own_rule``: GAS's) its planner alone, unbudgeted (:data:`GRAPH`)."""
+    a rule of its own (``own_rule``: GAS's) its planner alone, unbudgeted (:data:`PLANNER`)."""
     if own_rule:
-        return [Row(GRAPH, math.inf, True, 0.0)]
+        return [Row(PLANNER, math.inf, True, 0.0)]
     if not plans:
         return [Row(FLAT, math.inf, False, 0.0)]
     out = [Row(AQM, float(kappa), True, float(patience), cut_slack=float(cut_slack))]

@@ -41,7 +41,7 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
     ``heatmap.png``. ``info`` is merged into the JSON (config, checkpoint, keypoints, ...); ``legs``
     holds the leg log, with the no-pruning rows' budgets at ``false_alarm``. Returns the report written."""
     os.makedirs(out, exist_ok=True)
-    if graph is None:  # a method without a map
+    if not isinstance(graph, Graph):  # a method without a map, or a map that is no graph (HILP's states)
         nodes_xy, edges = np.zeros((0, 2)), np.zeros((0, 2), int)
     else:
         nodes_xy = np.asarray(graph.obs)[:, :2]

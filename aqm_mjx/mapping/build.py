@@ -146,7 +146,7 @@ def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array) -> t
 
 @functools.lru_cache(maxsize=8)
 def _jitted_mapper(mapper, max_len: int):
-    return jax.jit(lambda aux, obs, ends: mapper(aux, obs, ends, max_len))
+    return jax.jit(lambda aux, obs, ends, key: mapper(aux, obs, ends, max_len, key))
 
 
 def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array) -> tuple[Graph, dict]:
@@ -159,7 +159,8 @@ def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array) -> tupl
     ends = trajectory_ends(data['terminals'])
     starts = np.concatenate([[0], np.flatnonzero(np.diff(ends)) + 1])
     build = _jitted_mapper(agent.mapper, int(np.max(ends[starts] - starts + 1)))
-    graph, count, overflow = build(agent.aux, jnp.asarray(data['observations'], jnp.float32), jnp.asarray(ends))
+    graph, count, overflow = build(agent.aux, jnp.asarray(data['observations'], jnp.float32), jnp.asarray(ends), key)
     n = int(count)
-    graph = trim(graph, min(graph.mask.shape[0], max(8, -(-n // 8) * 8)))
+    if isinstance(graph, Graph):
+        graph = trim(graph, min(graph.mask.shape[0], max(8, -(-n // 8) * 8)))
     return graph, dict(keypoints=n, overflow=bool(overflow), seconds=time.perf_counter() - t0)

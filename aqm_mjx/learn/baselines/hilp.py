@@ -8,10 +8,10 @@ navigation, as its public code trains it (``hilp_gcrl/src/agents/hilp.py``):
   transition, rewarded by the progress ``(phi(s') - phi(s)) . z`` along them (``phi`` held fixed):
   IQL's value and twin critic on ``(s, z)`` (no terminal) and an AWR actor (temperature 10; a ReLU
   MLP without LayerNorm and a learned log-std, as ``jaxrl_m``'s ``Policy``);
-- at test time the direction to the goal, ``z = (phi(g) - phi(s)) / ||phi(g) - phi(s)||``.
-
-HILP's test-time planning (midpoints between the state and the goal among dataset states) is not
-here yet: this entry is HILP without planning, a flat method to evaluation.
+- at test time the direction to a waypoint, ``z = (phi(w) - phi(s)) / ||phi(w) - phi(s)||``: with
+  ``planning_recursions`` > 0 (3, as HILP's AntMaze runs) its test-time planning
+  (:mod:`aqm_mjx.agent.hilp_rule`: midpoints among ``planning_states`` dataset states), with 0 the
+  goal itself (a flat method).
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from aqm_mjx.agent import hilp_rule
+from aqm_mjx.interface import Agent
 from aqm_mjx.learn import losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import option
@@ -40,8 +42,19 @@ class HILPConfig(base.BaselineConfig):
     value_p_current: float = option(0.0, 'value goals: P(the state itself)')
     value_p_trajectory: float = option(0.625, 'value goals: P(a later state of the trajectory)')
     value_p_random: float = option(0.375, 'value goals: P(a random dataset state)')
+    planning_recursions: int = option(3, 'test-time planning: midpoint recursions (0: steer at the goal itself)')
+    planning_states: int = option(50_000, 'test-time planning: dataset states drawn (with replacement) per evaluation')
+    planning_knns: int = option(50, 'test-time planning: nearest states averaged into each midpoint')
 
-    PRESET_OVERRIDES = {'ci': {'latent': 8}}
+    PRESET_OVERRIDES = {'ci': {'latent': 8, 'planning_states': 512, 'planning_knns': 8}}
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.planning_recursions < 0:
+            raise ValueError(f'planning_recursions must be >= 0 (0: no planning); got {self.planning_recursions}')
+        if not 1 <= self.planning_knns <= self.planning_states:
+            raise ValueError(f'planning_knns must be in [1, planning_states = {self.planning_states}]; '
+                             f'got {self.planning_knns}')
 
 
 def unit(x: jax.Array) -> jax.Array:
@@ -94,10 +107,32 @@ def make(cfg: HILPConfig, obs_size: int, action_size: int):
         z = unit(phi(p, goal) - phi(p, obs))
         return actor.apply(p['actor'], obs, z)[0]
 
-    return base.make_learner(cfg, init_params, ('value', 'skill_critic'), loss, controller,
-                             {'value': value, 'skill_value': skill_value, 'skill_critic': skill_critic, 'actor': actor})
+    learner = base.make_learner(cfg, init_params, ('value', 'skill_critic'), loss, controller,
+                                {'value': value, 'skill_value': skill_value, 'skill_critic': skill_critic,
+                                 'actor': actor})
+    if not cfg.planning_recursions:
+        return learner
+
+    def encode(p, obs):
+        return phi(p, obs[None])[0]
+
+    def act(p, obs, z):
+        return actor.apply(p['actor'], obs, z)[0]
+
+    def mapper(p, observations, traj_end, max_len, key):
+        """HILP's planning states: ``planning_states`` dataset states drawn with replacement, with their phi."""
+        del traj_end, max_len
+        obs = observations[jax.random.randint(key, (cfg.planning_states,), 0, observations.shape[0])]
+        return hilp_rule.Examples(z=networks.map_rows(lambda o: phi(p, o), obs), obs=obs), cfg.planning_states, False
+
+    rule = hilp_rule.make_decide(encode, act, cfg.planning_recursions, cfg.planning_knns)
+
+    def agent(aux=None) -> Agent:
+        return Agent(None, None, controller, aux, rule=lambda agent_, agent_cfg: rule, mapper=mapper)
+
+    return learner._replace(agent=agent)
 
 
-METHODS = (base.Method('hilp', HILPConfig, make, summary='HILP: Hilbert representation, latent-direction policy '
-                       '(no test-time planning yet)',
+METHODS = (base.Method('hilp', HILPConfig, make, summary='HILP: Hilbert representation, latent-direction policy, '
+                       'midpoint planning among dataset states',
                        progress={'value/loss': 'value', 'skill_critic/loss': 'critic', 'skill_actor/loss': 'actor'}),)
