@@ -101,12 +101,15 @@ def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, vari
     else:  # a flat method: no quasimetric, no map
         graph, m = None, dict(keypoints=0, overflow=False, seconds=0.0)
         log(f'{trained.method} has no quasimetric: no map, its controller is evaluated flat')
-    if m['overflow']:
+    if m['overflow'] and agent.mapper is not None:
+        log(f'warning: {trained.method} needed more map nodes than its max_nodes; some states joined their nearest')
+    elif m['overflow']:
         log(f'warning: {cfg.map.max_keypoints} keypoints did not cover the candidates at delta {cfg.map.delta}; '
             'raise --max-keypoints or --delta')
+    what = 'nodes of its own map' if agent.mapper is not None else f'keypoints at delta {cfg.map.delta}'
     n_agents = 1 + len(cfg.protocol.ablations) if agent.prunes else 1
     log(f'{env.name}, {trained.method} {trained.config.preset} preset at step {trained.step}: {m["keypoints"]} '
-        f'{"nodes (its own map)" if agent.mapper else f"keypoints at delta {cfg.map.delta}"} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
+        f'{what} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
         f'{len(cfg.protocol.tasks) or env.num_tasks} tasks x {cfg.protocol.episodes} episodes on '
         f'{jax.device_count()} device(s)')
     owned = programs is None  # the calibration pass and the evaluation share one compiled chunk

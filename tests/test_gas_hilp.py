@@ -1,6 +1,7 @@
 """GAS's and HILP's parts by hand: temporal-efficiency filtering, TD-aware clustering, GAS's edges, the Hilbert value."""
 
 import jax.numpy as jnp
+import pytest
 import numpy as np
 
 from aqm_mjx.learn.baselines import gas
@@ -258,6 +259,26 @@ def test_hilp_planning_midpoints_by_hand_and_without_planning_the_flat_agent():
     assert planning.plans and not planning.prunes and planning.rule is not None and planning.dist is None
     flat = m.make(m.preset('ci', env='pointmaze-medium', planning_recursions=0), 2, 2).agent()
     assert not flat.plans and flat.rule is None
-    import pytest
     with pytest.raises(ValueError, match='planning_knns'):
         m.preset('ci', env='pointmaze-medium', planning_knns=600)
+
+
+@pytest.mark.slow
+def test_compare_trains_and_evaluates_gas_and_hilp_with_their_own_planners(tmp_path):
+    import json
+    import os
+
+    from aqm_mjx import compare
+    from aqm_mjx.data import synthetic
+
+    path = str(tmp_path / 'pointmaze-medium-navigate.npz')
+    np.savez(path, **synthetic.point_walks(n_traj=60, t_len=60, seed=0))
+    out = str(tmp_path / 'cmp')
+    over = ['steps=100', 'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20']
+    res = compare.compare('pointmaze-medium', ['gas', 'hilp'], 2, out, preset='ci', dataset=path, overrides=over,
+                          log=lambda *_: None)
+    assert list(res['rows']) == ['gas', 'hilp'] and all(r['base']['episodes'] == 4 for r in res['rows'].values())
+    for m in ('gas', 'hilp'):
+        ev = json.load(open(os.path.join(out, 'eval', m, 'results.json')))
+        assert set(ev['summary']) == {f'{m}:seed_0/planner', f'{m}:seed_1/planner'}
+        assert all(c['keypoints'] > 0 for c in ev['checkpoints'].values())

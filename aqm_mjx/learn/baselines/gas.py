@@ -2,7 +2,7 @@
 (``qortmdgh4141/GAS``: ``M_utils/agents/gas.py``, ``O_utils/datasets.py``, ``construct_graph.py``,
 ``O_utils/evaluation.py``), in two phases of one run:
 
-1. **TDR** (the first ``tdr_fraction`` of the updates): a temporal distance representation ``phi``
+1. **TDR** (the first ``tdr_steps`` updates, half the run by default): a temporal distance representation ``phi``
    with ``V(s, g) = -||phi(s) - phi(g)||`` (two heads, :class:`~aqm_mjx.learn.networks.HilbertValue`)
    learned by implicit V-learning at expectile 0.999 on goals 62.5% later in the trajectory
    (geometric), 37.5% random, with a target copy (``pretrain_tdr.py``);
@@ -59,7 +59,8 @@ class GASConfig(base.BaselineConfig):
                             "radius (phi's units: control steps)")
     te_threshold: float = option(0.99, 'TE filtering: the cosine below which a dataset state is dropped')
     max_nodes: int = option(4096, 'static bound on the graph nodes (a state that needs more joins its nearest)')
-    tdr_fraction: float = option(0.5, 'share of the updates that train the TDR before the skill policy (GAS: 1M + 1M)')
+    tdr_steps: int = option(0, "updates of the TDR phase before the skill policy's (GAS: 1M + 1M); 0: half the "
+                            "run's steps, fixed when the config is made (a resumed or extended run keeps it)")
     waystep_window: int = option(16, "states after each sampled one searched for its waystep (2 H; phase 2 runs at "
                                  "a third of phase 1's speed at 24 on a 2-core CPU, at 0.8 at 1)")
     value_p_current: float = option(0.0, 'TDR goals: P(the state itself)')
@@ -70,8 +71,10 @@ class GASConfig(base.BaselineConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        if not 0.0 < self.tdr_fraction < 1.0:
-            raise ValueError(f'tdr_fraction must be in (0, 1) (both phases need updates); got {self.tdr_fraction}')
+        if self.tdr_steps < 0:
+            raise ValueError(f'tdr_steps must be >= 0 (0: half the steps); got {self.tdr_steps}')
+        if self.tdr_steps == 0:
+            object.__setattr__(self, 'tdr_steps', max(1, self.steps // 2))
         if self.way_steps < 1:
             raise ValueError(f'way_steps must be an integer >= 1; got {self.way_steps}')
         if not -1.0 <= self.te_threshold <= 1.0:
@@ -79,11 +82,6 @@ class GASConfig(base.BaselineConfig):
         for name in ('max_nodes', 'waystep_window'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1; got {getattr(self, name)}')
-
-    @property
-    def tdr_steps(self) -> int:
-        """Updates of the TDR phase (at least 1, at most ``steps - 1``)."""
-        return min(max(1, round(self.steps * self.tdr_fraction)), self.steps - 1)
 
 
 @struct.dataclass
