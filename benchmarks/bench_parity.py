@@ -136,6 +136,25 @@ def _set(tree, path, value):
     node[path[-1]] = value
 
 
+def rel(a, b) -> float:
+    """Largest absolute difference of ``a`` and ``b`` relative to ``a``'s largest magnitude."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(a)), 1e-12))
+
+
+def worst_gradient(g_ref: dict, g_mine: dict) -> tuple[float, str]:
+    """``(largest relative difference, leaf)`` of two gradient trees in the reference's layout (its
+    target modules left out)."""
+    return max((rel(np.asarray(x), np.asarray(y)), '/'.join(k)) for (k, x), (_, y)
+               in zip(_flat({n: v for n, v in g_ref.items() if 'target' not in n}),
+                      _flat({n: v for n, v in g_mine.items() if 'target' not in n})))
+
+
+def max_param_diff(ref: dict, mine: dict) -> float:
+    """Largest absolute difference of two parameter trees in the reference's layout."""
+    return max(float(np.max(np.abs(np.asarray(x) - np.asarray(y)))) for (_, x), (_, y) in zip(_flat(ref), _flat(mine)))
+
+
 def describe(tree) -> list[str]:
     return ['/'.join(map(str, p)) + f' {tuple(np.shape(v))}' for p, v in _flat(tree)]
 

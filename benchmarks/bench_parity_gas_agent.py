@@ -36,7 +36,7 @@ from aqm_mjx.learn import methods
 from aqm_mjx.learn.baselines import gas
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
-from bench_parity import _flat, _gaussian_standin, _set
+from bench_parity import _flat, _gaussian_standin, _set, max_param_diff, rel, worst_gradient
 
 HIDDEN, LATENT, OBS, ACT, B, W = (32, 32), 8, 29, 8, 64, 6
 REF_NAMES = {'tdr': 'tdr_value', 'value': 'value', 'critic': 'critic', 'actor': 'actor'}
@@ -99,11 +99,6 @@ def batches(key, n: int, step: int, phi):
     return out
 
 
-def rel(a, b) -> float:
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(a)), 1e-12))
-
-
 def fresh(ref_agent, state):
     """The reference agent with our parameters and a fresh Adam state on them (a plain dict: its
     target update writes into the tree)."""
@@ -135,9 +130,7 @@ def phase(name, ref, agent, learner, state, data, a, rows) -> bool:
         rows.append(dict(what=f'{name}/loss/{what}', reference=float(x), ours=float(y), rel_diff=d))
         print(f'{name:6} {what:8} {float(x):12.6f} {float(y):12.6f} {d:9.1e}')
     g_mine = to_reference(state.replace(params=g_ours), params)
-    worst = max((rel(np.asarray(x), np.asarray(y)), '/'.join(k)) for (k, x), (_, y)
-                in zip(_flat({n: v for n, v in g_ref.items() if 'target' not in n}),
-                       _flat({n: v for n, v in g_mine.items() if 'target' not in n})))
+    worst = worst_gradient(g_ref, g_mine)
     ok &= worst[0] <= a.loss_tol
     rows.append(dict(what=f'{name}/gradients', rel_diff=worst[0], where=worst[1]))
     print(f'{name:6} gradients: largest relative difference {worst[0]:.1e} ({worst[1]})')
@@ -147,8 +140,7 @@ def phase(name, ref, agent, learner, state, data, a, rows) -> bool:
         agent, _ = (agent.tdr_update if name == 'tdr' else agent.critic_actor_update)(dict(rb))
         state, _ = step(state, ob, key)
         mine = to_reference(state, params)
-        diff = max(float(np.max(np.abs(np.asarray(x) - np.asarray(y)))) for (_, x), (_, y)
-                   in zip(_flat(dict(agent.network.params)), _flat(mine)))
+        diff = max_param_diff(dict(agent.network.params), mine)
         ok &= diff <= a.param_tol
         rows.append(dict(what=f'{name}/update {i}', max_param_diff=diff))
         print(f'{name:6} after update {i}: largest parameter difference {diff:.1e}')

@@ -35,7 +35,7 @@ from aqm_mjx.data import goals
 from aqm_mjx.learn import methods
 
 from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
-from bench_parity import _flat, _gaussian_standin, _set
+from bench_parity import _flat, _gaussian_standin, _set, max_param_diff, rel, worst_gradient
 
 HIDDEN, LATENT, OBS, ACT, B = (32, 32, 32), 8, 29, 8, 64
 # our (module, first path part) -> the reference's module and the path before the layer names
@@ -110,11 +110,6 @@ def batches(key, n: int):
     return out
 
 
-def rel(a, b) -> float:
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(a)), 1e-12))
-
-
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--reference', required=True, help='a checkout of github.com/seohongpark/HILP')
@@ -159,9 +154,7 @@ def main() -> int:
         rows.append(dict(what=f'loss/{name}', reference=float(x), ours=float(y), rel_diff=d))
         print(f'{name:14} {float(x):12.6f} {float(y):12.6f} {d:9.1e}')
     g_ref_ours = to_reference(state.replace(params=g_ours, target=state.target), params)
-    worst = max((rel(np.asarray(x), np.asarray(y)), '/'.join(k)) for (k, x), (_, y)
-                in zip(_flat({n: v for n, v in g_ref.items() if 'target' not in n}),
-                       _flat({n: v for n, v in g_ref_ours.items() if 'target' not in n})))
+    worst = worst_gradient(g_ref, g_ref_ours)
     ok &= worst[0] <= a.loss_tol
     rows.append(dict(what='gradients', rel_diff=worst[0], where=worst[1]))
     print(f'gradients: largest relative difference {worst[0]:.1e} ({worst[1]})')
@@ -173,8 +166,7 @@ def main() -> int:
         agent, _ = agent.update(dict(rb))
         state, _ = step(state, ob, skill_key)
         mine = to_reference(state, params)
-        diff = max(float(np.max(np.abs(np.asarray(x) - np.asarray(y)))) for (_, x), (_, y)
-                   in zip(_flat(dict(agent.network.params)), _flat(mine)))
+        diff = max_param_diff(dict(agent.network.params), mine)
         ok &= diff <= a.param_tol
         rows.append(dict(what=f'update {i}', max_param_diff=diff))
         print(f'after update {i}: largest parameter difference {diff:.1e}')
