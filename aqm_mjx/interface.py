@@ -21,13 +21,15 @@ class Agent(NamedTuple):
             baselines): no map is built for it and it is evaluated as a flat controller.
         controller: ``(aux, obs [D], subgoal_obs [D], t, key) -> action [A]``.
         aux: the pytree the functions read (parameters, tables); None while not bound.
-        rule: a method's own test-time rule, ``(agent, AgentConfig) -> Decide``
-            (:class:`aqm_mjx.agent.rollout.Decide`; GAS's :mod:`aqm_mjx.agent.gas_rule`); None: AQM's
-            rules (:mod:`aqm_mjx.agent.rules`, budgets and pruning, with their ablation rows).
-        mapper: a method's own map, ``(aux, observations [N, D], traj_end [N], max_len, key) -> (map,
-            count, overflow)`` from the dataset's states (jittable, ``max_len`` static: the longest
-            trajectory): a :class:`~aqm_mjx.mapping.graph.Graph` (GAS's) or the pytree its ``rule``
-            reads (HILP's planning states); None: keypoints (:mod:`aqm_mjx.mapping.build`).
+        rule: a method's own test-time rule, a :func:`spec` the agent stage resolves
+            (``('gas', ...)``: :mod:`aqm_mjx.agent.gas_rule`, ``('hilp', ...)``:
+            :mod:`aqm_mjx.agent.hilp_rule`); None: AQM's rules (:mod:`aqm_mjx.agent.rules`, budgets
+            and pruning, with their ablation rows).
+        mapper: a method's own map, a :func:`spec` the mapping stage resolves
+            (:func:`aqm_mjx.mapping.build.own_map`: GAS's graph from every state, HILP's planning
+            states); None: keypoints (:mod:`aqm_mjx.mapping.build`).
+        skill: ``(aux, obs [D], direction [L]) -> action [A]``, the latent-conditioned policy a rule
+            of its own steers (GAS's and HILP's); None otherwise.
     """
 
     encode: Callable
@@ -36,6 +38,7 @@ class Agent(NamedTuple):
     aux: Any = None
     rule: Any = None
     mapper: Any = None
+    skill: Any = None
 
     @property
     def plans(self) -> bool:
@@ -50,3 +53,8 @@ class Agent(NamedTuple):
     def bind(self, aux: Any) -> 'Agent':
         """The same functions with parameters ``aux``."""
         return self._replace(aux=aux)
+
+
+def spec(name: str, **settings) -> tuple:
+    """A rule or map a later stage resolves by name: ``(name, ((setting, value), ...))`` (hashable)."""
+    return (name, tuple(sorted(settings.items())))

@@ -28,7 +28,7 @@ from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.evaluation import calibration
 from aqm_mjx.evaluation import protocol as proto
 from aqm_mjx.learn import fit, methods
-from aqm_mjx.mapping.build import MapConfig, build_map
+from aqm_mjx.mapping.build import MapConfig, build_map, own_map
 
 SECTIONS = presets.SECTIONS  # the sections beside train, whose fields are command-line options
 
@@ -140,8 +140,8 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
         # MAP: keypoints and graph from dataset states (none for a method without a quasimetric)
         if agent.mapper is not None:  # a method's own map (GAS's) from every state; trajectories of the
             # collector's length at most (env.max_episode_steps + 1 states)
-            graph, count, overflow = agent.mapper(params, ds.observations, ds.traj_end, env.max_episode_steps + 1,
-                                                  k_map)
+            graph, count, overflow = own_map(agent, params, ds.observations, ds.traj_end, env.max_episode_steps + 1,
+                                             k_map)
         elif agent.plans:
             graph, kp = build_map(agent, ds.observations, cfg.map, k_map, params)
             count, overflow = kp.count, kp.overflow

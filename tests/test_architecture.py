@@ -127,7 +127,7 @@ def test_a_method_is_one_file_the_registry_discovers(tmp_path, monkeypatch):
     from aqm_mjx.learn.baselines import gcbc
 
     # every method file of the package is registered, each under the names its METHODS declare
-    assert set(methods.names()) == {'aqm', 'aqm-awr', 'aqm-bc', 'crl', 'gcbc', 'gciql', 'gcivl', 'hilp', 'hiql', 'qrl',
+    assert set(methods.names()) == {'aqm', 'aqm-awr', 'aqm-bc', 'crl', 'gas', 'gcbc', 'gciql', 'gcivl', 'hilp', 'hiql', 'qrl',
                                      'saw'}
     assert methods.get('hiql').style_defaults['explore']['high_alpha'] == 10.0
     # a new file declaring METHODS is all a method needs

@@ -283,7 +283,7 @@ def test_calibration_never_draws_an_evaluation_task_or_key(monkeypatch):
         return types.SimpleNamespace(legs=legs, table=episodes.table)
 
     monkeypatch.setattr(evaluate, 'evaluate', fake_evaluate)
-    out = evaluate.calibration_pass(env, types.SimpleNamespace(plans=True), None, AgentConfig(kappa=1.0), p, key,
+    out = evaluate.calibration_pass(env, types.SimpleNamespace(plans=True, prunes=True), None, AgentConfig(kappa=1.0), p, key,
                                     progress=False)
     assert np.isinf(seen['kappa']) and (seen['episodes'].table.task == 0).all()
     assert np.asarray(seen['key']).tobytes() == np.asarray(jax.random.fold_in(key, protocol.CALIBRATION_FOLD)).tobytes()
@@ -338,7 +338,7 @@ def test_calibrated_budget_by_hand():
     assert (cal_proto.episodes, cal_proto.ablations, cal_proto.tasks, cal_proto.calibrate, cal_proto.split) == (
         4, (), (), 'none', 'dev')
     with pytest.raises(ValueError, match="calibrate is 'none'"):  # before any episode is run
-        evaluate.calibration_pass(None, types.SimpleNamespace(plans=True), None, None, protocol.ProtocolConfig(),
+        evaluate.calibration_pass(None, types.SimpleNamespace(plans=True, prunes=True), None, None, protocol.ProtocolConfig(),
                                   jax.random.PRNGKey(0))
 
 

@@ -282,3 +282,21 @@ def test_compare_trains_and_evaluates_gas_and_hilp_with_their_own_planners(tmp_p
         ev = json.load(open(os.path.join(out, 'eval', m, 'results.json')))
         assert set(ev['summary']) == {f'{m}:seed_0/planner', f'{m}:seed_1/planner'}
         assert all(c['keypoints'] > 0 for c in ev['checkpoints'].values())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('method', ['gas', 'hilp'])
+def test_the_one_program_trains_maps_and_evaluates_gas_and_hilp(method):
+    import jax
+
+    from aqm_mjx import envs, pipeline
+    from aqm_mjx.data import dataset as dsm
+    from aqm_mjx.data import synthetic
+
+    cfg = pipeline.RunConfig.preset('ci', method=method, env='pointmaze-medium').with_overrides(
+        ['train.steps=100', 'train.updates_per_call=50', 'train.log_every=50', 'train.checkpoint_every=50',
+         'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20'])
+    run = pipeline.make_run(cfg, envs.make('pointmaze-medium'))
+    assert list(run.episodes.agents) == ['planner']
+    out = jax.jit(run)(jax.random.PRNGKey(0), dsm.to_device(synthetic.point_walks(n_traj=20, t_len=60)))
+    assert int(out['keypoints']) > 0 and out['episode_success'].shape == (2,) and int(out['pruned'].sum()) == 0

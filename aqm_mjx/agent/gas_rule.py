@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from aqm_mjx.agent import plan as planning
+from aqm_mjx.agent.rollout import Decide
 from aqm_mjx.mapping.graph import Graph
 
 PATH_TOL = 1e-4  # relative slack of "on the shortest path"
@@ -96,8 +97,6 @@ def make_decide(encode: Callable, act: Callable, horizon: float):
         ``(init, act)`` as :func:`aqm_mjx.agent.rollout.make_decide`'s; an episode row with
         ``use_graph`` False heads for the goal from the start (GAS's policy, flat).
     """
-    from aqm_mjx.agent.rollout import Decide  # noqa: PLC0415 (rollout imports this module's users)
-
     def init(aux, graph: Graph, obs, goal, inputs):
         enc = jax.vmap(lambda o: encode(aux, o))
         dist = planning.shortest_distances(graph.w)

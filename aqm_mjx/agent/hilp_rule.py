@@ -3,7 +3,7 @@
 the mean ``phi`` of the ``knns`` dataset states that minimise ``max(||phi(x) - phi(s)||, ||phi(x) -
 phi(w)||)`` (``w``: the goal, then the last waypoint), a midpoint between the state and it; the
 latent policy then steers toward ``(phi(w) - phi(s)) / ||phi(w) - phi(s)||``. The dataset states
-(the "map") are drawn once per evaluation (:class:`Examples`).
+(the "map") are drawn once per evaluation (:class:`~aqm_mjx.mapping.states.PlanningStates`).
 """
 
 from __future__ import annotations
@@ -14,13 +14,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-
-@struct.dataclass
-class Examples:
-    """HILP's planning states: ``z [N, L]`` their ``phi``, ``obs [N, D]`` the states (pictures)."""
-
-    z: jax.Array
-    obs: jax.Array
+from aqm_mjx.agent.rollout import Decide
+from aqm_mjx.mapping.states import PlanningStates
 
 
 @struct.dataclass
@@ -48,14 +43,12 @@ def make_decide(encode: Callable, act: Callable, recursions: int, knns: int):
     Args:
         encode: ``(aux, obs [D]) -> phi [L]``; act: ``(aux, obs [D], skill [L]) -> action [A]``.
     """
-    from aqm_mjx.agent.rollout import Decide  # noqa: PLC0415 (rollout imports this module's users)
-
-    def init(aux, examples: Examples, obs, goal, inputs):
+    def init(aux, examples: PlanningStates, obs, goal, inputs):
         del obs
         return HILPState(goal=jax.vmap(lambda o: encode(aux, o))(goal), plans=inputs.use_graph,
                          node=jnp.full(inputs.use_graph.shape, -1, jnp.int32))
 
-    def step(aux, examples: Examples, agents: HILPState, obs, goal, done, t, inputs):
+    def step(aux, examples: PlanningStates, agents: HILPState, obs, goal, done, t, inputs):
         del goal, done, t, inputs
         phi_s = jax.vmap(lambda o: encode(aux, o))(obs)
         way = jax.vmap(lambda s, g: waypoint(examples.z, s, g, recursions, knns))(phi_s, agents.goal)

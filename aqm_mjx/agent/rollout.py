@@ -90,8 +90,15 @@ class Decide(NamedTuple):
 def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
     """The PLAN and ACT half of a control step of ``agent`` (see :func:`make_rollout`)."""
     slots = cfg.slots
-    if agent.rule is not None:  # a method's own rule (GAS's)
-        return agent.rule(agent, cfg)
+    if agent.rule is not None:  # a method's own rule (GAS's, HILP's planning), a spec resolved here
+        name, settings = agent.rule
+        if name == 'gas':
+            from aqm_mjx.agent import gas_rule  # noqa: PLC0415 (it imports Decide from here)
+            return gas_rule.make_decide(agent.encode, agent.skill, **dict(settings))
+        if name == 'hilp':
+            from aqm_mjx.agent import hilp_rule  # noqa: PLC0415
+            return hilp_rule.make_decide(agent.encode, agent.skill, **dict(settings))
+        raise ValueError(f'unknown test-time rule {name!r} (known: gas, hilp)')
     if not agent.plans:
         def init_flat(aux, graph, obs, goal, inputs):
             return ()

@@ -173,11 +173,3 @@ class GoalRep(nn.Module):
     def __call__(self, s_and_g):
         return length_normalize(MLP((*self.hidden, self.rep), layer_norm=self.layer_norm)(s_and_g))
 
-
-def map_rows(fn, x: jax.Array, chunk: int = 4096) -> jax.Array:
-    """``fn`` over the rows of ``x [N, D]``, ``chunk`` rows per call (``lax.map``, bounded memory):
-    ``fn([chunk, D]) -> [chunk, L]`` gives ``[N, L]`` (the last chunk zero-padded)."""
-    n, d = x.shape
-    pad = (-n) % chunk
-    chunks = jnp.concatenate([x, jnp.zeros((pad, d), x.dtype)]).reshape(-1, chunk, d)
-    return jax.lax.map(fn, chunks).reshape(n + pad, -1)[:n]

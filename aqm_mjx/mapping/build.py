@@ -21,6 +21,7 @@ from aqm_mjx import presets
 from aqm_mjx.config import option
 from aqm_mjx.data.dataset import trajectory_ends
 from aqm_mjx.interface import Agent
+from aqm_mjx.mapping import gas_nodes, states
 from aqm_mjx.mapping import keypoints as kps
 from aqm_mjx.mapping.graph import Graph, build_graph, trim
 
@@ -144,9 +145,27 @@ def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array) -> t
     return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), seconds=time.perf_counter() - t0)
 
 
+def own_map(agent: Agent, aux, observations: jax.Array, traj_end: jax.Array, max_len: int, key: jax.Array):
+    """A method's own map (``agent.mapper``, a :func:`~aqm_mjx.interface.spec`) from a dataset's
+    states: ``(map, count, overflow)`` (jittable; ``max_len`` static, the longest trajectory).
+
+    ``('gas', way_steps, te_threshold, max_nodes)``: GAS's graph of every state
+    (:func:`aqm_mjx.mapping.gas_nodes.gas_map`); ``('hilp', states)``: HILP's planning states
+    (:func:`aqm_mjx.mapping.states.planning_states`).
+    """
+    name, settings = agent.mapper
+    kw = dict(settings)
+    if name == 'gas':
+        return gas_nodes.gas_map(agent.encode, aux, observations, traj_end, max_len, **kw)
+    if name == 'hilp':
+        return states.planning_states(agent.encode, aux, observations, key, **kw), kw['states'], jnp.bool_(False)
+    raise ValueError(f'unknown map {name!r} (known: gas, hilp)')
+
+
 @functools.lru_cache(maxsize=8)
-def _jitted_mapper(mapper, max_len: int):
-    return jax.jit(lambda aux, obs, ends, key: mapper(aux, obs, ends, max_len, key))
+def _jitted_own_map(encode, mapper, max_len: int):
+    agent = Agent(encode, None, None, mapper=mapper)
+    return jax.jit(lambda aux, obs, ends, key: own_map(agent, aux, obs, ends, max_len, key))
 
 
 def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array) -> tuple[Graph, dict]:
@@ -158,7 +177,7 @@ def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array) -> tupl
     t0 = time.perf_counter()
     ends = trajectory_ends(data['terminals'])
     starts = np.concatenate([[0], np.flatnonzero(np.diff(ends)) + 1])
-    build = _jitted_mapper(agent.mapper, int(np.max(ends[starts] - starts + 1)))
+    build = _jitted_own_map(agent.encode, agent.mapper, int(np.max(ends[starts] - starts + 1)))
     graph, count, overflow = build(agent.aux, jnp.asarray(data['observations'], jnp.float32), jnp.asarray(ends), key)
     n = int(count)
     if isinstance(graph, Graph):

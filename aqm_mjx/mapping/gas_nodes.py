@@ -27,6 +27,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from aqm_mjx.mapping.graph import Graph, components
+from aqm_mjx.mapping.states import map_rows
 
 
 def _cosine(u: jax.Array, v: jax.Array) -> jax.Array:
@@ -193,3 +194,12 @@ def gas_graph(f: jax.Array, observations: jax.Array, traj_end: jax.Array, way_st
     w = gas_edges(nodes.centers, nodes.mask, way_steps)
     obs = jnp.where(nodes.mask[:, None], observations[representatives(f, nodes)], 0.0)
     return Graph(z=nodes.centers, obs=obs, mask=nodes.mask, w=w, tau=jnp.float32(way_steps)), nodes
+
+
+def gas_map(encode, aux, observations: jax.Array, traj_end: jax.Array, max_len: int, way_steps: int,
+            te_threshold: float, max_nodes: int) -> tuple[Graph, jax.Array, jax.Array]:
+    """:func:`gas_graph` of every state, encoded by ``encode(aux, obs [D]) -> [L]`` (GAS's TDR):
+    ``(Graph [max_nodes], count, overflow)`` (jittable; ``max_len`` static)."""
+    f = map_rows(jax.vmap(lambda o: encode(aux, o)), observations)
+    graph, nodes = gas_graph(f, observations, traj_end, way_steps, te_threshold, max_nodes, max_len)
+    return graph, nodes.count, nodes.overflow

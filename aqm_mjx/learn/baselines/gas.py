@@ -36,13 +36,11 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from aqm_mjx.agent import gas_rule
 from aqm_mjx.data import goals
-from aqm_mjx.interface import Agent
+from aqm_mjx.interface import Agent, spec
 from aqm_mjx.learn import losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import Learner, option
-from aqm_mjx.mapping import gas_nodes
 
 POLICY = ('value', 'critic', 'actor')  # the skill policy's modules (phase 2); 'tdr' is phase 1's
 
@@ -106,6 +104,12 @@ def sample(ds, key: jax.Array, cfg: GASConfig, step: jax.Array) -> GASBatch:
     ahead = jnp.minimum(gc.index[:, None] + jnp.arange(cfg.waystep_window + 1), end[:, None])
     geom = jax.random.geometric(k_geom, 1.0 - cfg.discount, (cfg.batch_size,)).astype(jnp.int32)
     return GASBatch(gc=gc, ahead=ds.observations[ahead], end=end, geom=geom, step=jnp.asarray(step, jnp.int32))
+
+
+def skill(phi_s: jax.Array, target: jax.Array) -> jax.Array:
+    """GAS's skill: ``(target - phi(s)) / (||target - phi(s)|| + 1e-10)``, ``[..., L]``."""
+    v = target - phi_s
+    return v / (jnp.linalg.norm(v, axis=-1, keepdims=True) + 1e-10)
 
 
 def actor_goal_offsets(f: jax.Array, index: jax.Array, end: jax.Array, geom: jax.Array, way_steps: float):
@@ -176,9 +180,9 @@ def parts(cfg: GASConfig, obs_size: int, action_size: int) -> types.SimpleNamesp
         l_q, q_info = losses.iql_critic_loss(critic.apply(params['critic'], s, z, act), value.apply(fixed['value'], s1, z),
                                              r, jnp.ones_like(r), cfg.discount)
         off, found = actor_goal_offsets(f, b.index, batch.end, batch.geom, cfg.way_steps)
-        skill = gas_rule.skill(phi_s, jnp.take_along_axis(f, off[:, None, None], axis=1)[:, 0])
-        mean, log_std = actor.apply(params['actor'], s, skill)
-        q = critic.apply(fixed['critic'], s, skill, jnp.clip(mean, -1.0, 1.0))
+        z_actor = skill(phi_s, jnp.take_along_axis(f, off[:, None, None], axis=1)[:, 0])
+        mean, log_std = actor.apply(params['actor'], s, z_actor)
+        q = critic.apply(fixed['critic'], s, z_actor, jnp.clip(mean, -1.0, 1.0))
         l_a, a_info = losses.ddpgbc_actor_loss(q, policy.log_prob(mean, log_std, act), cfg.alpha)
         return l_v + l_q + l_a, {**v_info, **q_info, **a_info, 'actor/mse': jnp.mean(jnp.square(mean - act)),
                                  'actor/waystep_in_window': jnp.mean(found.astype(jnp.float32)),
@@ -244,21 +248,14 @@ def parts(cfg: GASConfig, obs_size: int, action_size: int) -> types.SimpleNamesp
     def controller(p, obs, goal, t, key):
         """GAS's policy aimed at the goal itself (the flat row)."""
         del t, key
-        return act(p, obs, gas_rule.skill(encode(p, obs), encode(p, goal)))
+        return act(p, obs, skill(encode(p, obs), encode(p, goal)))
 
-    def mapper(p, observations, traj_end, max_len: int, key=None):
-        """GAS's map of a dataset: ``(Graph [max_nodes], count, overflow)`` from every state (jittable;
-        ``max_len`` static; ``key`` unused: the map is deterministic)."""
-        del key
-        f = networks.map_rows(lambda o: phi(p, o), observations)
-        graph, nodes = gas_nodes.gas_graph(f, observations, traj_end, cfg.way_steps, cfg.te_threshold, cfg.max_nodes,
-                                           max_len)
-        return graph, nodes.count, nodes.overflow
-
-    rule = gas_rule.make_decide(encode, act, cfg.way_steps)
+    # GAS's map (every state: aqm_mjx.mapping.gas_nodes) and rule (aqm_mjx.agent.gas_rule), resolved there
+    mapper = spec('gas', way_steps=cfg.way_steps, te_threshold=cfg.te_threshold, max_nodes=cfg.max_nodes)
+    rule = spec('gas', horizon=float(cfg.way_steps))
 
     def agent(aux=None) -> Agent:
-        return Agent(encode, dist, controller, aux, rule=lambda agent_, agent_cfg: rule, mapper=mapper)
+        return Agent(encode, dist, controller, aux, rule=rule, mapper=mapper, skill=act)
 
     def params_of(state):
         return state.params

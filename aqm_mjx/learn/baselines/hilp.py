@@ -21,8 +21,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.agent import hilp_rule
-from aqm_mjx.interface import Agent
+from aqm_mjx.interface import Agent, spec
 from aqm_mjx.learn import losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import option
@@ -119,16 +118,12 @@ def make(cfg: HILPConfig, obs_size: int, action_size: int):
     def act(p, obs, z):
         return actor.apply(p['actor'], obs, z)[0]
 
-    def mapper(p, observations, traj_end, max_len, key):
-        """HILP's planning states: ``planning_states`` dataset states drawn with replacement, with their phi."""
-        del traj_end, max_len
-        obs = observations[jax.random.randint(key, (cfg.planning_states,), 0, observations.shape[0])]
-        return hilp_rule.Examples(z=networks.map_rows(lambda o: phi(p, o), obs), obs=obs), cfg.planning_states, False
-
-    rule = hilp_rule.make_decide(encode, act, cfg.planning_recursions, cfg.planning_knns)
+    # its planning states (aqm_mjx.mapping.states) and midpoint rule (aqm_mjx.agent.hilp_rule), resolved there
+    mapper = spec('hilp', states=cfg.planning_states)
+    rule = spec('hilp', recursions=cfg.planning_recursions, knns=cfg.planning_knns)
 
     def agent(aux=None) -> Agent:
-        return Agent(None, None, controller, aux, rule=lambda agent_, agent_cfg: rule, mapper=mapper)
+        return Agent(encode, None, controller, aux, rule=rule, mapper=mapper, skill=act)
 
     return learner._replace(agent=agent)
 
