@@ -28,8 +28,9 @@ class Agent(NamedTuple):
         mapper: a method's own map, a :func:`spec` the mapping stage resolves
             (:func:`aqm_mjx.mapping.build.own_map`: GAS's graph from every state, HILP's planning
             states); None: keypoints (:mod:`aqm_mjx.mapping.build`).
-        skill: ``(aux, obs [D], direction [L]) -> action [A]``, the latent-conditioned policy a rule
-            of its own steers (GAS's and HILP's); None otherwise.
+        skill: ``(aux, obs [D], phi_obs [L], target [L]) -> action [A]``, the latent-conditioned
+            policy a rule of its own steers toward a latent target (GAS's and HILP's, each with its
+            own direction: GAS's ``skill``, HILP's ``unit``); None otherwise.
     """
 
     encode: Callable

@@ -185,7 +185,7 @@ def test_gas_rule_goal_attachment_start_and_furthest_path_node_by_hand():
     np.testing.assert_allclose(z, phi_g)
     _, final, node, _ = gas_rule.target(dist, to_goal, centers, mask, jnp.array([3.0, 0.0]), phi_g, start, final, 5.0)
     assert bool(final) and int(node) == -1
-    np.testing.assert_allclose(gas_rule.skill(jnp.array([1.0, 1.0]), jnp.array([4.0, 5.0])), [0.6, 0.8], rtol=1e-6)
+    np.testing.assert_allclose(gas.skill(jnp.array([1.0, 1.0]), jnp.array([4.0, 5.0])), [0.6, 0.8], rtol=1e-6)
 
 
 def test_gas_actor_goal_is_the_geometric_offset_capped_at_the_waystep_by_hand():

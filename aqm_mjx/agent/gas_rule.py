@@ -8,7 +8,7 @@
 3. takes the subgoal: the furthest node of that shortest path (the goal included) within ``H`` of
    ``phi(s)``, else the path's start; once the path is the start and the goal alone (2 nodes), the
    goal for the rest of the episode;
-4. acts: the skill policy toward ``(target - phi(s)) / ||target - phi(s)||``.
+4. acts: the skill policy toward ``(target - phi(s)) / (||target - phi(s)|| + 1e-10)``.
 
 As GAS's ``evaluate_with_graph`` with the shortest paths computed per episode (its strategy (1),
 which its authors found equal to caching them per task). There is no budget and no pruning: GAS's
@@ -80,18 +80,13 @@ def target(dist: jax.Array, to_goal: jax.Array, centers: jax.Array, mask: jax.Ar
     return start, final, node, jnp.where(to_g, phi_g, centers[jnp.maximum(node, 0)])
 
 
-def skill(phi_s: jax.Array, target_z: jax.Array) -> jax.Array:
-    """GAS's skill: ``(target - phi(s)) / (||target - phi(s)|| + 1e-10)``, ``[..., L]``."""
-    v = target_z - phi_s
-    return v / (jnp.linalg.norm(v, axis=-1, keepdims=True) + 1e-10)
-
-
 def make_decide(encode: Callable, act: Callable, horizon: float):
     """GAS's :class:`~aqm_mjx.agent.rollout.Decide` half of a control step.
 
     Args:
         encode: ``(aux, obs [D]) -> phi [L]``.
-        act: ``(aux, obs [D], skill [L]) -> action [A]`` (the skill policy's mean).
+        act: ``(aux, obs [D], phi_obs [L], target [L]) -> action [A]`` (the skill policy's mean toward
+            the target, :attr:`aqm_mjx.interface.Agent.skill`).
         horizon: ``H`` (GAS's ``way_steps``): the start search and subgoal radius, in TDR units.
     Returns:
         ``(init, act)`` as :func:`aqm_mjx.agent.rollout.make_decide`'s; an episode row with
@@ -114,7 +109,7 @@ def make_decide(encode: Callable, act: Callable, horizon: float):
         start, final, node, z = jax.vmap(
             lambda tg, ps, pg, st, fi: target(agents.dist, tg, graph.z, graph.mask, ps, pg, st, fi, horizon))(
             agents.to_goal, phi_s, agents.goal, agents.start, agents.final)
-        actions = jax.vmap(lambda o, k: act(aux, o, k))(obs, skill(phi_s, z))
+        actions = jax.vmap(lambda o, s, k: act(aux, o, s, k))(obs, phi_s, z)
         return jnp.clip(actions, -1.0, 1.0), agents.replace(start=start, final=final, node=node)
 
     return Decide(init, step)

@@ -20,11 +20,9 @@ from aqm_mjx.mapping.states import PlanningStates
 
 @struct.dataclass
 class HILPState:
-    """The batch's planners: ``goal [B, L]`` phi(goal), ``plans [B]`` whether the row plans (else it heads
-    for the goal, HILP without planning), ``node [B]`` -1 (no keypoints, for the traces)."""
+    """The batch's planners: ``goal [B, L]`` phi(goal), ``node [B]`` -1 (no keypoints, for the traces)."""
 
     goal: jax.Array
-    plans: jax.Array
     node: jax.Array
 
 
@@ -41,21 +39,20 @@ def make_decide(encode: Callable, act: Callable, recursions: int, knns: int):
     False head for the goal, as HILP without planning).
 
     Args:
-        encode: ``(aux, obs [D]) -> phi [L]``; act: ``(aux, obs [D], skill [L]) -> action [A]``.
+        encode: ``(aux, obs [D]) -> phi [L]``; act: ``(aux, obs [D], phi_obs [L], target [L]) -> action
+            [A]`` (:attr:`aqm_mjx.interface.Agent.skill`).
     """
     def init(aux, examples: PlanningStates, obs, goal, inputs):
         del obs
-        return HILPState(goal=jax.vmap(lambda o: encode(aux, o))(goal), plans=inputs.use_graph,
-                         node=jnp.full(inputs.use_graph.shape, -1, jnp.int32))
+        return HILPState(goal=jax.vmap(lambda o: encode(aux, o))(goal), node=jnp.full(inputs.use_graph.shape, -1,
+                                                                                          jnp.int32))
 
     def step(aux, examples: PlanningStates, agents: HILPState, obs, goal, done, t, inputs):
-        del goal, done, t, inputs
+        del goal, done, t
         phi_s = jax.vmap(lambda o: encode(aux, o))(obs)
         way = jax.vmap(lambda s, g: waypoint(examples.z, s, g, recursions, knns))(phi_s, agents.goal)
-        target = jnp.where(agents.plans[:, None], way, agents.goal)
-        v = target - phi_s
-        skill = v / jnp.maximum(jnp.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
-        actions = jax.vmap(lambda o, k: act(aux, o, k))(obs, skill)
+        target = jnp.where(inputs.use_graph[:, None], way, agents.goal)
+        actions = jax.vmap(lambda o, s, k: act(aux, o, s, k))(obs, phi_s, target)
         return jnp.clip(actions, -1.0, 1.0), agents
 
     return Decide(init, step)

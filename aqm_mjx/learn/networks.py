@@ -172,4 +172,3 @@ class GoalRep(nn.Module):
     @nn.compact
     def __call__(self, s_and_g):
         return length_normalize(MLP((*self.hidden, self.rep), layer_norm=self.layer_norm)(s_and_g))
-

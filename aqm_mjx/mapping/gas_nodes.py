@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from aqm_mjx.mapping.graph import Graph, components
-from aqm_mjx.mapping.states import map_rows
+from aqm_mjx.mapping.states import encode_all
 
 
 def _cosine(u: jax.Array, v: jax.Array) -> jax.Array:
@@ -200,6 +200,6 @@ def gas_map(encode, aux, observations: jax.Array, traj_end: jax.Array, max_len: 
             te_threshold: float, max_nodes: int) -> tuple[Graph, jax.Array, jax.Array]:
     """:func:`gas_graph` of every state, encoded by ``encode(aux, obs [D]) -> [L]`` (GAS's TDR):
     ``(Graph [max_nodes], count, overflow)`` (jittable; ``max_len`` static)."""
-    f = map_rows(jax.vmap(lambda o: encode(aux, o)), observations)
+    f = encode_all(encode, aux, observations)
     graph, nodes = gas_graph(f, observations, traj_end, way_steps, te_threshold, max_nodes, max_len)
     return graph, nodes.count, nodes.overflow

@@ -20,6 +20,11 @@ def map_rows(fn, x: jax.Array, chunk: int = 4096) -> jax.Array:
     return jax.lax.map(fn, chunks).reshape(n + pad, -1)[:n]
 
 
+def encode_all(encode: Callable, aux, observations: jax.Array) -> jax.Array:
+    """``encode(aux, obs [D]) -> [L]`` of every row of ``observations [N, D]``: ``[N, L]`` (:func:`map_rows`)."""
+    return map_rows(jax.vmap(lambda o: encode(aux, o)), observations)
+
+
 @struct.dataclass
 class PlanningStates:
     """``z [N, L]`` the states' representation, ``obs [N, D]`` the states."""
@@ -32,4 +37,4 @@ def planning_states(encode: Callable, aux, observations: jax.Array, key: jax.Arr
     """``states`` rows of ``observations [M, D]`` drawn uniformly with replacement (HILP's
     ``dataset.sample``) and encoded (jittable; ``encode(aux, obs [D]) -> [L]``)."""
     obs = observations[jax.random.randint(key, (states,), 0, observations.shape[0])]
-    return PlanningStates(z=map_rows(jax.vmap(lambda o: encode(aux, o)), obs), obs=obs)
+    return PlanningStates(z=encode_all(encode, aux, obs), obs=obs)

@@ -242,20 +242,21 @@ def parts(cfg: GASConfig, obs_size: int, action_size: int) -> types.SimpleNamesp
         del p
         return jnp.linalg.norm(u - v)
 
-    def act(p, obs, z):
-        return actor.apply(p['actor'], obs, z)[0]
+    def steer(p, obs, phi_s, target):
+        """The skill policy's mean toward latent ``target`` from ``obs`` (``phi_s = phi(obs)``)."""
+        return actor.apply(p['actor'], obs, skill(phi_s, target))[0]
 
     def controller(p, obs, goal, t, key):
         """GAS's policy aimed at the goal itself (the flat row)."""
         del t, key
-        return act(p, obs, skill(encode(p, obs), encode(p, goal)))
+        return steer(p, obs, encode(p, obs), encode(p, goal))
 
     # GAS's map (every state: aqm_mjx.mapping.gas_nodes) and rule (aqm_mjx.agent.gas_rule), resolved there
     mapper = spec('gas', way_steps=cfg.way_steps, te_threshold=cfg.te_threshold, max_nodes=cfg.max_nodes)
     rule = spec('gas', horizon=float(cfg.way_steps))
 
     def agent(aux=None) -> Agent:
-        return Agent(encode, dist, controller, aux, rule=rule, mapper=mapper, skill=act)
+        return Agent(encode, dist, controller, aux, rule=rule, mapper=mapper, skill=steer)
 
     def params_of(state):
         return state.params

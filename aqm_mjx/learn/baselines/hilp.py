@@ -115,15 +115,16 @@ def make(cfg: HILPConfig, obs_size: int, action_size: int):
     def encode(p, obs):
         return phi(p, obs[None])[0]
 
-    def act(p, obs, z):
-        return actor.apply(p['actor'], obs, z)[0]
+    def steer(p, obs, phi_s, target):
+        """The latent policy's mean toward latent ``target`` from ``obs`` (``phi_s = phi(obs)``)."""
+        return actor.apply(p['actor'], obs, unit(target - phi_s))[0]
 
     # its planning states (aqm_mjx.mapping.states) and midpoint rule (aqm_mjx.agent.hilp_rule), resolved there
     mapper = spec('hilp', states=cfg.planning_states)
     rule = spec('hilp', recursions=cfg.planning_recursions, knns=cfg.planning_knns)
 
     def agent(aux=None) -> Agent:
-        return Agent(encode, None, controller, aux, rule=rule, mapper=mapper, skill=act)
+        return Agent(encode, None, controller, aux, rule=rule, mapper=mapper, skill=steer)
 
     return learner._replace(agent=agent)
 
