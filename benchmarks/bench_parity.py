@@ -155,6 +155,46 @@ def max_param_diff(ref: dict, mine: dict) -> float:
     return max(float(np.max(np.abs(np.asarray(x) - np.asarray(y)))) for (_, x), (_, y) in zip(_flat(ref), _flat(mine)))
 
 
+def check_losses(pairs, tol: float, rows: list, prefix: str = '') -> bool:
+    """``pairs`` of ``(name, reference, ours)`` losses: print and record each (``what``: ``PREFIXloss/NAME``);
+    True when every relative difference is within ``tol``."""
+    ok = True
+    for name, x, y in pairs:
+        d = rel(x, y)
+        ok &= d <= tol
+        rows.append(dict(what=f'{prefix}loss/{name}', reference=float(x), ours=float(y), rel_diff=d))
+        print(f'{prefix}{name:14} {float(x):12.6f} {float(y):12.6f} {d:9.1e}')
+    return ok
+
+
+def check_gradients(g_ref: dict, g_mine: dict, tol: float, rows: list, prefix: str = '') -> bool:
+    """:func:`worst_gradient`, printed and recorded (``PREFIXgradients``); True when within ``tol``."""
+    worst = worst_gradient(g_ref, g_mine)
+    rows.append(dict(what=f'{prefix}gradients', rel_diff=worst[0], where=worst[1]))
+    print(f'{prefix}gradients: largest relative difference {worst[0]:.1e} ({worst[1]})')
+    return worst[0] <= tol
+
+
+def check_update(i: int, ref: dict, mine: dict, tol: float, rows: list, prefix: str = '') -> bool:
+    """:func:`max_param_diff` after update ``i``, printed and recorded (``PREFIXupdate I``); True when within ``tol``."""
+    diff = max_param_diff(ref, mine)
+    rows.append(dict(what=f'{prefix}update {i}', max_param_diff=diff))
+    print(f'{prefix}after update {i}: largest parameter difference {diff:.1e}')
+    return diff <= tol
+
+
+def verdict(ok: bool, control_agreed: bool, a, rows: list, updates: str, control: str) -> int:
+    """The closing line (``a``: the parsed ``--loss-tol``, ``--param-tol``, ``--out``), the machine
+    line and the exit status: 0 when parity holds and the control disagrees."""
+    from _report import finish  # noqa: PLC0415 (benchmarks/ on sys.path when a script runs)
+
+    print(f'parity: {"PASS" if ok else "FAIL"} (losses and gradients within {a.loss_tol:g}, parameters within '
+          f'{a.param_tol:g} after {updates}); control ({control}): '
+          f'{"FAIL (agreed)" if control_agreed else "differs as it must"}')
+    finish(rows, a.out)
+    return 0 if ok and not control_agreed else 1
+
+
 def describe(tree) -> list[str]:
     return ['/'.join(map(str, p)) + f' {tuple(np.shape(v))}' for p, v in _flat(tree)]
 

@@ -35,8 +35,8 @@ from aqm_mjx.data import goals
 from aqm_mjx.learn import methods
 from aqm_mjx.learn.baselines import gas
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
-from bench_parity import _flat, _gaussian_standin, _set, max_param_diff, rel, worst_gradient
+from bench_parity import (_flat, _gaussian_standin, _set, check_gradients, check_losses, check_update, rel,
+                          verdict)
 
 HIDDEN, LATENT, OBS, ACT, B, W = (32, 32), 8, 29, 8, 64, 6
 REF_NAMES = {'tdr': 'tdr_value', 'value': 'value', 'critic': 'critic', 'actor': 'actor'}
@@ -123,27 +123,17 @@ def phase(name, ref, agent, learner, state, data, a, rows) -> bool:
     (l_ref, info_ref), g_ref = jax.value_and_grad(ref_loss, has_aux=True)(params)
     loss_fn = learner.tdr_loss if name == 'tdr' else learner.policy_loss
     (l_ours, info_ours), g_ours = jax.value_and_grad(loss_fn, has_aux=True)(state.params, state.target, our_batch, key)
-    for what, kr, ko in [('total', None, None)] + keys:
-        x, y = (l_ref, l_ours) if kr is None else (info_ref[kr], info_ours[ko])
-        d = rel(x, y)
-        ok &= d <= a.loss_tol
-        rows.append(dict(what=f'{name}/loss/{what}', reference=float(x), ours=float(y), rel_diff=d))
-        print(f'{name:6} {what:8} {float(x):12.6f} {float(y):12.6f} {d:9.1e}')
-    g_mine = to_reference(state.replace(params=g_ours), params)
-    worst = worst_gradient(g_ref, g_mine)
-    ok &= worst[0] <= a.loss_tol
-    rows.append(dict(what=f'{name}/gradients', rel_diff=worst[0], where=worst[1]))
-    print(f'{name:6} gradients: largest relative difference {worst[0]:.1e} ({worst[1]})')
+    pairs = [('total', l_ref, l_ours)] + [(what, info_ref[kr], info_ours[ko]) for what, kr, ko in keys]
+    ok &= check_losses(pairs, a.loss_tol, rows, prefix=f'{name}/')
+    ok &= check_gradients(g_ref, to_reference(state.replace(params=g_ours), params), a.loss_tol, rows,
+                          prefix=f'{name}/')
     step = jax.jit(learner.step)
     for i, (rb, ob) in enumerate(data[1:], 1):
         key = jax.random.split(jax.random.split(agent.rng)[1])[0]
         agent, _ = (agent.tdr_update if name == 'tdr' else agent.critic_actor_update)(dict(rb))
         state, _ = step(state, ob, key)
-        mine = to_reference(state, params)
-        diff = max_param_diff(dict(agent.network.params), mine)
-        ok &= diff <= a.param_tol
-        rows.append(dict(what=f'{name}/update {i}', max_param_diff=diff))
-        print(f'{name:6} after update {i}: largest parameter difference {diff:.1e}')
+        ok &= check_update(i, dict(agent.network.params), to_reference(state, params), a.param_tol, rows,
+                           prefix=f'{name}/')
     return ok, l_ref
 
 
@@ -166,7 +156,7 @@ def main() -> int:
               lr=cfg.lr, tau=cfg.tau, way_steps=cfg.way_steps)
     agent = ref.GASAgent.create(0, np.zeros((1, OBS), np.float32), np.zeros((1, ACT), np.float32), dict(rc))
     rows = []
-    print(f'{"phase":6} {"loss":8} {"reference":>12} {"ours":>12} {"rel diff":>9}')
+    print(f'{"phase/loss":14} {"reference":>12} {"ours":>12} {"rel diff":>9}')
     phi = jax.jit(lambda o: learner.phi(state.params, o))
     ok_t, _ = phase('tdr', ref, agent, learner, state.replace(step=jnp.int32(0)),
                     batches(jax.random.PRNGKey(1), 6, 0, phi), a, rows)
@@ -180,11 +170,7 @@ def main() -> int:
     l_moved, _ = moved.policy_loss(state.params, state.target, policy_data[0][1], key)
     control = rel(l_ref, l_moved) <= a.loss_tol
     rows.append(dict(what='control', reference=float(l_ref), ours_moved=float(l_moved)))
-    print(f'parity: {"PASS" if ok else "FAIL"} (losses and gradients within {a.loss_tol:g}, parameters within '
-          f'{a.param_tol:g} after 5 updates of each phase); control (skill value expectile + 0.05): '
-          f'{"FAIL (agreed)" if control else "differs as it must"}')
-    finish(rows, a.out)
-    return 0 if ok and not control else 1
+    return verdict(ok, control, a, rows, '5 updates of each phase', 'skill value expectile + 0.05')
 
 
 if __name__ == '__main__':

@@ -34,8 +34,8 @@ import numpy as np
 from aqm_mjx.data import goals
 from aqm_mjx.learn import methods
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
-from bench_parity import _flat, _gaussian_standin, _set, max_param_diff, rel, worst_gradient
+from bench_parity import (_flat, _gaussian_standin, _set, check_gradients, check_losses, check_update, rel,
+                          verdict)
 
 HIDDEN, LATENT, OBS, ACT, B = (32, 32, 32), 8, 29, 8, 64
 # our (module, first path part) -> the reference's module and the path before the layer names
@@ -148,16 +148,9 @@ def main() -> int:
              ('skill_critic', info_ref['skill_critic/critic_loss'], info_ours['skill_critic/loss']),
              ('skill_actor', info_ref['skill_actor/actor_loss'], info_ours['skill_actor/loss'])]
     print(f'{"loss":14} {"reference":>12} {"ours":>12} {"rel diff":>9}')
-    for name, x, y in pairs:
-        d = rel(x, y)
-        ok &= d <= a.loss_tol
-        rows.append(dict(what=f'loss/{name}', reference=float(x), ours=float(y), rel_diff=d))
-        print(f'{name:14} {float(x):12.6f} {float(y):12.6f} {d:9.1e}')
-    g_ref_ours = to_reference(state.replace(params=g_ours, target=state.target), params)
-    worst = worst_gradient(g_ref, g_ref_ours)
-    ok &= worst[0] <= a.loss_tol
-    rows.append(dict(what='gradients', rel_diff=worst[0], where=worst[1]))
-    print(f'gradients: largest relative difference {worst[0]:.1e} ({worst[1]})')
+    ok &= check_losses(pairs, a.loss_tol, rows)
+    ok &= check_gradients(g_ref, to_reference(state.replace(params=g_ours, target=state.target), params), a.loss_tol,
+                          rows)
 
     # 5 updates on 5 further batches
     step = jax.jit(learner.step)
@@ -165,11 +158,7 @@ def main() -> int:
         skill_key = jax.random.split(agent.rng)[1]
         agent, _ = agent.update(dict(rb))
         state, _ = step(state, ob, skill_key)
-        mine = to_reference(state, params)
-        diff = max_param_diff(dict(agent.network.params), mine)
-        ok &= diff <= a.param_tol
-        rows.append(dict(what=f'update {i}', max_param_diff=diff))
-        print(f'after update {i}: largest parameter difference {diff:.1e}')
+        ok &= check_update(i, dict(agent.network.params), to_reference(state, params), a.param_tol, rows)
 
     # CONTROL: ours with the latent policy's expectile moved by 0.05 must disagree with the reference's loss
     moved = m.make(cfg.__class__(**{**cfg.to_dict(), 'skill_expectile': cfg.skill_expectile + 0.05}), OBS, ACT)
@@ -177,11 +166,7 @@ def main() -> int:
     l_moved, _ = moved.loss(start.params, start.target, our_batch, key0)
     control = rel(l_ref, l_moved) <= a.loss_tol
     rows.append(dict(what='control', reference=float(l_ref), ours_moved=float(l_moved)))
-    print(f'parity: {"PASS" if ok else "FAIL"} (losses and gradients within {a.loss_tol:g}, parameters within '
-          f'{a.param_tol:g} after 5 updates); control (skill expectile + 0.05): '
-          f'{"FAIL (agreed)" if control else "differs as it must"}')
-    finish(rows, a.out)
-    return 0 if ok and not control else 1
+    return verdict(ok, control, a, rows, '5 updates', 'skill expectile + 0.05')
 
 
 if __name__ == '__main__':
