@@ -129,6 +129,11 @@ def _jitted_build(agent_fns: tuple, cfg: MapConfig):
     return jax.jit(lambda aux, obs, key: build_map(agent, obs, cfg, key, aux))
 
 
+def _trim_to_count(graph: Graph, count: int) -> Graph:
+    """``graph`` cut to its ``count`` used slots rounded up to 8 (at most its size), host side."""
+    return trim(graph, min(graph.mask.shape[0], -(-count // 8) * 8))
+
+
 def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array) -> tuple[Graph, dict]:
     """:func:`build_map` jitted (one compile per agent functions and config), then trimmed to the
     keypoint count rounded up to 8 (host side): the rollout's cost grows with K, so the padded
@@ -141,7 +146,7 @@ def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array) -> t
     build = _jitted_build((agent.encode, agent.dist), cfg)
     graph, kp = build(agent.aux, jnp.asarray(observations), key)
     n_kp = int(kp.count)
-    graph = trim(graph, min(cfg.max_keypoints, -(-n_kp // 8) * 8))
+    graph = _trim_to_count(graph, n_kp)
     return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), seconds=time.perf_counter() - t0)
 
 
@@ -181,5 +186,5 @@ def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array) -> tupl
     graph, count, overflow = build(agent.aux, jnp.asarray(data['observations'], jnp.float32), jnp.asarray(ends), key)
     n = int(count)
     if isinstance(graph, Graph):
-        graph = trim(graph, min(graph.mask.shape[0], max(8, -(-n // 8) * 8)))
+        graph = _trim_to_count(graph, max(n, 1))
     return graph, dict(keypoints=n, overflow=bool(overflow), seconds=time.perf_counter() - t0)
