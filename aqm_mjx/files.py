@@ -22,11 +22,31 @@ def _command() -> str:
     return ' '.join(COMMAND or ['aqm-mjx'] + sys.argv[1:])
 
 
+# the libraries whose versions a result records (installed distribution names)
+LIBRARIES = ('jax', 'jaxlib', 'mujoco', 'mujoco-mjx', 'flax', 'optax', 'orbax-checkpoint', 'numpy', 'ogbench')
+
+
+def library_versions() -> dict:
+    """``{distribution: version}`` of :data:`LIBRARIES` (``None`` for one not installed)."""
+    from importlib import metadata  # pylint: disable=import-outside-toplevel
+
+    out = {}
+    for name in LIBRARIES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
 def provenance() -> dict:
     """What produced a result: the package version, the git commit of the checkout it runs from
-    (``None`` outside one; ``+dirty`` with uncommitted changes), the command line and the host."""
+    (``None`` outside one; ``+dirty`` with uncommitted changes), the command line, the host, the
+    versions of the libraries it ran on (:data:`LIBRARIES`) and JAX's device (kind and count)."""
     import platform  # pylint: disable=import-outside-toplevel
     import subprocess  # pylint: disable=import-outside-toplevel
+
+    import jax  # pylint: disable=import-outside-toplevel
 
     import aqm_mjx  # pylint: disable=import-outside-toplevel
 
@@ -42,7 +62,9 @@ def provenance() -> dict:
         pass
     return dict(version=aqm_mjx.__version__, commit=commit, command=_command(),
                 host=socket.gethostname(), machine=platform.machine(), processor=platform.processor() or None,
-                python=platform.python_version())
+                python=platform.python_version(), libraries=library_versions(),
+                device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind,
+                            count=jax.device_count()))
 
 
 class MissingFileError(FileNotFoundError):

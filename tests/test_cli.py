@@ -163,6 +163,13 @@ def test_version_and_provenance(capsys):
         assert p['commit'].split('+')[0] == head.stdout.strip()
     else:
         assert p['commit'] is None
+    import jax  # pylint: disable=import-outside-toplevel
+    import mujoco  # pylint: disable=import-outside-toplevel
+
+    assert p['libraries']['jax'] == jax.__version__ and p['libraries']['mujoco'] == mujoco.__version__
+    assert set(p['libraries']) == set(files.LIBRARIES)
+    assert p['device'] == dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind,
+                               count=jax.device_count())
 
 
 def test_a_configured_compile_cache_wins_over_the_commands_default(tmp_path):
@@ -175,3 +182,24 @@ def test_a_configured_compile_cache_wins_over_the_commands_default(tmp_path):
         assert jax.config.jax_compilation_cache_dir == str(tmp_path)
     finally:
         jax.config.update('jax_compilation_cache_dir', before)
+
+
+def test_dependencies_are_ranges_that_the_installed_versions_meet():
+    """pyproject.toml declares ranges, not exact pins; the versions this suite runs on lie inside them
+    (each lower bound is the tested release), and mujoco / mujoco-mjx share one range."""
+    import tomllib  # pylint: disable=import-outside-toplevel
+    from importlib import metadata  # pylint: disable=import-outside-toplevel
+
+    from packaging.requirements import Requirement  # pylint: disable=import-outside-toplevel
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with open(os.path.join(root, 'pyproject.toml'), 'rb') as f:
+        deps = [Requirement(d) for d in tomllib.load(f)['project']['dependencies']]
+    assert deps and not [str(d) for d in deps if any(s.operator == '==' for s in d.specifier)]
+    for d in deps:
+        assert d.specifier.contains(metadata.version(d.name), prereleases=True), (d, metadata.version(d.name))
+        if d.name in ('jax', 'mujoco', 'mujoco-mjx', 'flax'):  # tested lower bound and an upper bound
+            assert {s.operator for s in d.specifier} >= {'>=', '<'}, d
+    spec = {d.name: str(d.specifier) for d in deps}
+    assert spec['mujoco'] == spec['mujoco-mjx']
+    assert not Requirement(f'jax{spec["jax"]}').specifier.contains('0.10.2')  # the miscompiling release
