@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
+import time
 from typing import Optional
 
 import jax
@@ -21,9 +23,9 @@ from aqm_mjx import envs, files, presets
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, report
-from aqm_mjx.evaluation.evaluate import calibrate_then_evaluate, device_mesh, make_program
+from aqm_mjx.evaluation.evaluate import calibrate_then_evaluate, device_mesh, evaluate, make_program
 from aqm_mjx.evaluation.protocol import plan_episodes
-from aqm_mjx.learn import fit
+from aqm_mjx.learn import fit, methods
 from aqm_mjx.mapping.build import method_map
 from aqm_mjx.pipeline import RunConfig, stage_keys
 
@@ -151,6 +153,48 @@ def calibration_line(cal: dict, agent_cfg) -> str:
     if cal['rule'] == 'fixed':
         return f'{where}: AQM row on the fixed rule, kappa {cal["kappa"]:g} ({q}){paper}'
     return f'{where} ({q}){paper}'
+
+
+def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str = '') -> Optional[fit.Curve]:
+    """The learning curve of a training run (:class:`~aqm_mjx.learn.fit.Curve`; None when
+    ``cfg.protocol.curve_episodes`` is 0): at every checkpoint, the method's agent without pruning
+    (its planner, or its flat controller) on ``curve_episodes`` development episodes per task of the
+    training layout, mapped from ``data``'s states with every map slot kept, so one compiled chunk
+    serves every point; the same episodes at every point (``key``). Each point is
+    ``{'eval/success', 'eval/episodes', 'eval/seconds'}``; ``draw`` redraws ``FOLDER/curves.png``
+    (the method's progress metrics and success, a line per seed)."""
+    n = cfg.protocol.curve_episodes
+    if not n:
+        return None
+    protocol = dataclasses.replace(cfg.protocol, episodes=n, ablations=(), calibrate='none', split='dev')
+    agent_cfg = dataclasses.replace(cfg.agent, kappa=math.inf, patience=0.0)
+    variants = {'base': env.layout}
+    k_map, k_eval = jax.random.split(key)
+    programs, shown = {}, {}
+
+    def point(trained: fit.Trained) -> dict:
+        t0 = time.perf_counter()
+        agent = trained.agent
+        graph = method_map(agent, data, cfg.map, k_map, static=True)[0] if agent.plans else None
+        if trained.method not in programs:  # seeds and checkpoints share one compiled chunk
+            steps = plan_episodes(env, protocol, agent_cfg.kappa, variants, plans=agent.plans,
+                                  own_rule=agent.rule is not None).steps
+            programs[trained.method] = make_program(env, agent, agent_cfg, steps, device_mesh(), protocol.backend,
+                                                    protocol.workers)
+            shown[trained.method] = [k for k in methods.get(trained.method).progress if k != 'phase']
+        res = evaluate(env, agent, graph, agent_cfg, protocol, variants, k_eval, program=programs[trained.method],
+                       progress=False)
+        return {'eval/success': res.summary[res.agents[0]]['base']['mean'], 'eval/episodes': n * len(res.tasks),
+                'eval/seconds': time.perf_counter() - t0}
+
+    def draw(folders: list) -> None:
+        method = next(iter(shown))
+        for folder in folders:
+            plots.curves({label or method: [os.path.join(f, 'metrics.jsonl') for f in folders]}, shown[method],
+                         os.path.join(folder, 'curves.png'),
+                         title=f'{env.name}: {label or method}, {cfg.train.preset} preset, {len(folders)} seed(s)')
+
+    return fit.Curve(point, draw)
 
 
 def prepare_evaluation(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], shift: str, overrides):

@@ -198,6 +198,14 @@ _SHARED = ('data_sha256', 'env', 'style', 'preset', 'seeds', 'eval_seed', 'split
            'variants')
 
 
+def _draw_curves(out: str, folders: dict, env_name: str, preset: str) -> None:
+    """``out/curves.png``: success against updates of every method so far, a line per seed (the
+    learning-curve points in each seed folder's ``metrics.jsonl``); nothing without them."""
+    paths = {m: [os.path.join(f, 'metrics.jsonl') for f in fs] for m, fs in folders.items()}
+    if any('eval/success' in ln for ps in paths.values() for p in ps for ln in plots.read_metrics(p)):
+        plots.curves(paths, [], os.path.join(out, 'curves.png'), title=f'{env_name}, {preset} preset')
+
+
 def _row_faults(r: dict) -> list[str]:
     """What in ``r['rows']`` the table could not print: per row and layout, a numeric mean, task
     rates and seed means, and intervals that are pairs of numbers (or none)."""
@@ -363,7 +371,8 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
             log(f'[{i + 1}/{len(cfgs)} {n}] train and evaluate')
             keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seed_ids])
             fit.train_seeds(n, [dataclasses.replace(c.train, seed=s) for s in seed_ids], data, folders, keys,
-                            dataset_path=os.path.abspath(path), log=log)
+                            dataset_path=os.path.abspath(path), log=log,
+                            curve=assess.learning_curve(env, data, c, stage_keys(jax.random.PRNGKey(eval_seed))[2], n))
             res = _evaluation(ev, folders, c.train.steps)
             if res is not None:
                 log(f'{n}: evaluated already ({ev}/results.json)')
@@ -371,6 +380,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
                 assess.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
                 res = files.read_json(os.path.join(ev, 'results.json'))  # as a re-run reads it (JSON types)
             per_method[n] = res
+            _draw_curves(out, {m: seed_folders(out, m, seed_ids) for m in per_method}, env_name, preset)
             result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method},
                                    log if i + 1 == len(cfgs) else (lambda *_: None))
             if i + 1 < len(cfgs):

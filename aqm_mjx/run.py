@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from aqm_mjx import envs, files
-from aqm_mjx.assess import map_and_evaluate, read_data, variants_for
+from aqm_mjx.assess import learning_curve, map_and_evaluate, read_data, variants_for
 from aqm_mjx.data import collect
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
@@ -82,7 +82,7 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
                                f'{"resuming" if done else "training"} {cfg.method} {cfg.train.preset} preset, '
                                f'{cfg.train.steps} updates'))
         trained = fit.train(cfg.method, cfg.train, data, tdir, resume='auto', dataset_path=os.path.abspath(path),
-                            key=k_train, log=log)
+                            key=k_train, log=log, curve=learning_curve(env, data, cfg, k_eval))
         times['train_s'] = time.perf_counter() - t0
         # MAP + EVALUATE, with the trained state in memory
         t0 = time.perf_counter()
@@ -94,7 +94,8 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
         summary_ = dict(env=env_name, seed=seed, config=cfg.to_dict(), dataset=os.path.abspath(path),
                         keypoints=rep['keypoints'], success=res.summary,
                         times_s={k: round(v, 1) for k, v in times.items()},
-                        pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')],
+                        pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')]
+                        + [p for p in [os.path.join(tdir, 'curves.png')] if os.path.exists(p)],
                         provenance=files.provenance())
         files.write_json(os.path.join(out, 'summary.json'), summary_)
         head = res.agents[0]  # 'aqm', or 'flat' for a method without a quasimetric

@@ -1,6 +1,7 @@
 """``aqm-mjx compare``: seeds trained as one vmapped program into ordinary run folders, resume
 without redoing finished methods, intervals a person can recompute, and requests checked first."""
 
+import dataclasses
 import json
 import math
 import os
@@ -16,7 +17,7 @@ from scipy import stats as sps
 from aqm_mjx import assess, cli, compare, envs, files, pipeline, presets, run
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
-from aqm_mjx.evaluation import report, stats
+from aqm_mjx.evaluation import plots, report, stats
 from aqm_mjx.learn import fit, methods
 from aqm_mjx.pipeline import stage_keys
 
@@ -168,9 +169,13 @@ def test_vmapped_seeds_equal_separate_runs_and_resume_after_an_interrupt(tmp_pat
 def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(tmp_path, monkeypatch):
     _, path = _data(tmp_path)
     out = str(tmp_path / 'cmp')
-    over = ['steps=100', 'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20']
+    over = ['steps=100', 'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20', 'protocol.curve_episodes=1']
     first = compare.compare('pointmaze-medium', ['gcbc'], 2, out, preset='ci', dataset=path, overrides=over, **QUIET)
     row = first['rows']['gcbc']['base']
+    for s in (0, 1):  # the learning curve: a point at the checkpoint (step 100), 1 episode of the one task
+        lines = plots.read_metrics(os.path.join(out, 'train', 'gcbc', f'seed_{s}', 'metrics.jsonl'))
+        assert [(ln['step'], ln['eval/episodes']) for ln in lines if 'eval/success' in ln] == [(100, 1)]
+    assert os.path.getsize(os.path.join(out, 'curves.png')) > 5000
     assert row['episodes'] == 4 and len(row['seed_means']) == 2
     res = json.load(open(os.path.join(out, 'eval', 'gcbc', 'results.json')))
     assert set(res['checkpoints']) == {'gcbc:seed_0', 'gcbc:seed_1'}
@@ -398,3 +403,37 @@ def test_merge_never_writes_into_an_input(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and os.path.join(bad, 'results.json') in err[0] and msg in err[0], (msg, err)
     assert not os.path.exists(tmp_path / 'x') and {f: _tree(f) for f in (a, b)} == before
+
+
+def test_learning_curve_points_land_in_each_seed_folder_and_restart_with_a_resume(tmp_path):
+    """A Curve's point runs at every checkpoint for every seed with that seed's state and step; its
+    metrics are a line of their own in that seed's metrics.jsonl; draw gets the folders each time; a
+    resume drops the points past the restart step and computes them again."""
+    data, _ = _data(tmp_path)
+    method = methods.get('gcbc')
+    cfg = method.preset('ci', env='pointmaze-medium', steps=200, checkpoint_every=100, log_every=50)
+    cfgs = [dataclasses.replace(cfg, seed=s) for s in (3, 4)]
+    outs = [str(tmp_path / f'seed_{s}') for s in (3, 4)]
+    keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in (3, 4)])
+    seen, drawn = [], []
+
+    def point(trained):
+        seen.append((trained.config.seed, trained.step, int(trained.state.step)))
+        return {'eval/success': trained.step / 1000 + trained.config.seed / 10, 'eval/episodes': 4}
+
+    fit.train_seeds(method, cfgs, data, outs, keys, progress=False, curve=fit.Curve(point, drawn.append), **QUIET)
+    assert seen == [(3, 100, 100), (4, 100, 100), (3, 200, 200), (4, 200, 200)]
+    assert drawn == [outs, outs]
+    for s, o in zip((3, 4), outs):
+        lines = [json.loads(ln) for ln in open(os.path.join(o, 'metrics.jsonl'))]
+        assert [ln['step'] for ln in lines] == [50, 100, 100, 150, 200, 200]
+        points = [(ln['step'], ln['eval/success']) for ln in lines if 'eval/success' in ln]
+        assert points == [(100, pytest.approx(0.1 + s / 10)), (200, pytest.approx(0.2 + s / 10))]
+        assert not any('loss' in k for ln in lines if 'eval/success' in ln for k in ln)  # a line of its own
+    # extended from the checkpoint at 200: the point at 200 is not repeated, 300 is new
+    seen.clear()
+    fit.train_seeds(method, [dataclasses.replace(c, steps=300) for c in cfgs], data, outs, keys, progress=False,
+                    curve=fit.Curve(point), **QUIET)
+    assert seen == [(3, 300, 300), (4, 300, 300)]
+    steps = [json.loads(ln)['step'] for ln in open(os.path.join(outs[0], 'metrics.jsonl')) if 'eval/success' in ln]
+    assert steps == [100, 200, 300]

@@ -120,7 +120,7 @@ def test_seeds_vmap_in_one_compile_and_match_separate_calls(one_program):
 
 
 RUN_ARGV = ['run', '--env', 'pointmaze-medium', '--preset', 'ci', '--set', 'steps=100', '--set',
-            'train.checkpoint_every=50', '--episodes', '1', '--horizon', '40']
+            'train.checkpoint_every=50', '--episodes', '1', '--horizon', '40', '--set', 'protocol.curve_episodes=1']
 
 
 def interrupted_then_resumed_run(tmp_path, capsys, monkeypatch):
@@ -152,9 +152,14 @@ def interrupted_then_resumed_run(tmp_path, capsys, monkeypatch):
 def test_run_command_resumes_after_an_interrupt(tmp_path, capsys, monkeypatch):
     _, out, first = interrupted_then_resumed_run(tmp_path, capsys, monkeypatch)
     assert 'resuming aqm ci preset' in first and 'mean success' in first
-    steps = [json.loads(line)['step'] for line in (out / 'train' / 'metrics.jsonl').read_text().splitlines()]
-    assert steps == [50, 100]  # one line per log_every, none repeated: it went on from 50
+    lines = [json.loads(line) for line in (out / 'train' / 'metrics.jsonl').read_text().splitlines()]
+    # one line per log_every, none repeated: it went on from 50; the learning curve's point at the
+    # checkpoint it reached (the one at 50 was cut off by the interrupt), 1 episode of each of 5 tasks
+    assert [ln['step'] for ln in lines] == [50, 100, 100]
+    assert lines[-1]['eval/episodes'] == 5 and lines[-1]['eval/success'] in (0, 0.2, 0.4, 0.6, 0.8, 1.0)
+    assert (out / 'train' / 'curves.png').exists()
     summary = json.loads((out / 'summary.json').read_text())
+    assert str(out / 'train' / 'curves.png') in summary['pictures']
     assert set(summary['success']) == {'aqm', 'no-pruning', 'flat'} and summary['keypoints'] >= 1
     assert (out / 'eval' / 'trajectories.png').exists()
     # the run's config is saved beside it and reads back equal

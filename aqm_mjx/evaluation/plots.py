@@ -105,3 +105,63 @@ def trajectory_panels(base_grid, grids: dict, traces: dict, nodes_xy: np.ndarray
     if not panels:
         raise ValueError(f'no trajectory of agent {agent!r} on task {task} was kept')
     return render.render_panels(base_grid, panels, path)
+
+
+def read_metrics(path: str) -> list[dict]:
+    """The lines of a run's ``metrics.jsonl`` (a missing file: none; a torn last line is skipped)."""
+    import json  # pylint: disable=import-outside-toplevel
+    import os  # pylint: disable=import-outside-toplevel
+
+    if not os.path.exists(path):
+        return []
+    out = []
+    with open(path) as f:
+        for line in f:
+            try:
+                out.append(json.loads(line))
+            except ValueError:
+                continue
+    return out
+
+
+def curves(runs: dict, keys: Sequence[str], path: Optional[str] = None, title: str = ''):
+    """Learning curves: one panel per training metric in ``keys`` and, where the runs hold learning-curve
+    points, a last one of success against updates with its 95% Wilson interval (``eval/success`` of
+    ``eval/episodes``). ``runs``: ``{label: [metrics.jsonl path per seed]}``; a colour per label, a
+    line per seed."""
+    from aqm_mjx.evaluation.stats import wilson  # pylint: disable=import-outside-toplevel
+
+    plt = render.pyplot()
+    keys = list(keys)
+    lines = {label: [read_metrics(p) for p in paths] for label, paths in runs.items()}
+    success = any('eval/success' in ln for seeds in lines.values() for ls in seeds for ln in ls)
+    n_panels = max(len(keys) + int(success), 1)
+    fig, axes = plt.subplots(1, n_panels, figsize=(3.3 * n_panels, 3.0), dpi=100, squeeze=False)
+    axes = axes[0]
+    for c, (label, seeds) in enumerate(lines.items()):
+        colour = f'C{c % 10}'
+        for s, ls in enumerate(seeds):
+            name = label if s == 0 else None  # one legend entry per label
+            for ax, k in zip(axes, keys):
+                pts = [(ln['step'], ln[k]) for ln in ls if k in ln]
+                if pts:
+                    ax.plot(*zip(*pts), color=colour, lw=1, alpha=0.8, label=name)
+            pts = [(ln['step'], ln['eval/success'], ln.get('eval/episodes', 0)) for ln in ls if 'eval/success' in ln]
+            if pts:
+                x, y, n = (np.asarray(v, float) for v in zip(*pts))
+                lo, hi = np.array([wilson(yi * ni, int(ni)) if ni else (yi, yi) for yi, ni in zip(y, n)]).T
+                axes[-1].plot(x, 100 * y, 'o-', color=colour, lw=1, ms=3, label=name)
+                axes[-1].fill_between(x, 100 * lo, 100 * hi, color=colour, alpha=0.12, lw=0)
+    for ax, k in zip(axes, keys):
+        ax.set_title(k, fontsize=9)
+        ax.set_xlabel('updates')
+    if success:
+        axes[-1].set_title('success (95% Wilson), development episodes', fontsize=9)
+        axes[-1].set_xlabel('updates')
+        axes[-1].set_ylabel('success (%)')
+        axes[-1].set_ylim(-2, 102)
+    if len(runs) > 1 or any(len(p) > 1 for p in runs.values()):
+        axes[-1].legend(fontsize=7, frameon=False, loc='best')
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return render.finish(plt, fig, path)  # pylint: disable=protected-access

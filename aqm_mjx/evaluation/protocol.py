@@ -71,6 +71,8 @@ class ProtocolConfig:
                                        'cells of the training layout that no evaluation task uses')
     split: str = option('report', "which episodes of the evaluation key: 'report' (no setting was chosen on them; "
                         "every table) or 'dev' (where settings are chosen)", choices=SPLITS)
+    curve_episodes: int = option(0, "learning curve: development episodes per task of the training layout, run at "
+                                 "every checkpoint while a run trains (the planner without pruning); 0: none")
 
     def __post_init__(self):
         cfg_lib.check_types(self)
@@ -86,6 +88,9 @@ class ProtocolConfig:
             raise ValueError(f'unknown ProtocolConfig.backend {self.backend!r}; expected one of {", ".join(BACKENDS)}')
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
             raise ValueError(f'ProtocolConfig.workers must be an integer >= 0; got {self.workers!r}')
+        if isinstance(self.curve_episodes, bool) or not isinstance(self.curve_episodes, int) or self.curve_episodes < 0:
+            raise ValueError(f'ProtocolConfig.curve_episodes must be an integer >= 0 (0: no curve); '
+                             f'got {self.curve_episodes!r}')
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 0:
             raise ValueError(f'ProtocolConfig.horizon must be an integer >= 0 (0: the limit); got {self.horizon!r}')
         repeated = sorted({t for t in self.tasks if self.tasks.count(t) > 1})

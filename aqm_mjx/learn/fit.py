@@ -17,7 +17,7 @@ import json
 import math
 import os
 import time
-from typing import Any, Callable, Optional, Union
+from typing import Any, Callable, NamedTuple, Optional, Union
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +29,19 @@ from aqm_mjx.learn import methods
 from aqm_mjx.learn.folder import (Trained, check_against_checkpoint, check_resumable,  # noqa: F401 (load: re-exported)
                                   check_same_data, checkpoint_steps, fingerprint, load, meta_of, read_meta, trim_metrics)
 from aqm_mjx.learn.learner import Learner
+
+class Curve(NamedTuple):
+    """A training run's learning curve, evaluated at every checkpoint (built by a later stage, e.g.
+    :func:`aqm_mjx.assess.learning_curve`, so that training imports no evaluation).
+
+    ``point(trained) -> {metric: float}``: the metrics of the method at that checkpoint (e.g.
+    ``eval/success``, ``eval/episodes``), appended to the run's ``metrics.jsonl`` as a line of their
+    own; ``draw(folders)``: called after each point with the run folders (one per seed), e.g. to
+    redraw ``curves.png``."""
+
+    point: Callable[[Trained], dict]
+    draw: Optional[Callable[[list], None]] = None
+
 
 # ------------------------------------------------------------------------------------ pure parts
 def chunk_step(update: Callable, length: int) -> Callable:
@@ -65,7 +78,7 @@ def train_scan(learner: Learner, key: jax.Array, ds: ds_io.Dataset, progress: Op
 # ------------------------------------------------------------------------------------- host loop
 def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, resume: Union[bool, str] = False,
           steps: Optional[int] = None, dataset_path: Optional[str] = None, progress: bool = True, log=print,
-          key: Optional[jax.Array] = None) -> Trained:
+          key: Optional[jax.Array] = None, curve: Optional[Curve] = None) -> Trained:
     """Train, resume or skip a run in folder ``out``: the one place that decides which.
 
     Args:
@@ -80,14 +93,22 @@ def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, re
         steps: override the total number of updates.
         key: the initialisation key (default ``PRNGKey(cfg.seed)``; the pipeline passes its train
             key so that both paths of a run start alike). Ignored on resume.
+        curve: evaluated at every checkpoint written (:class:`Curve`); None: no learning curve.
     Returns:
         :class:`Trained` with the final state.
     """
     with files.run_lock(out):  # one writer per run folder
-        return _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, key)
+        return _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, key, curve)
 
 
-def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, key) -> Trained:
+def _curve_points(curve: Optional[Curve], method, cfgs: list, learner, metas: list) -> Optional[Callable]:
+    """``(step, i, state_i) -> metrics`` of seed ``i`` for :func:`_host_loop` (None without a curve)."""
+    if curve is None:
+        return None
+    return lambda step, i, state: curve.point(Trained(method.name, cfgs[i], learner, state, step, metas[i]))
+
+
+def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, key, curve) -> Trained:
     method = methods.get(method) if isinstance(method, str) else method
     ds = ds_io.to_device(data)  # validates, and refuses a dataset without transitions
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
@@ -146,7 +167,8 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
     files.write_json(cfg_path, meta)
     chunk = jax.jit(chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
     state, step = _host_loop(chunk, state, ds, cfg, start, [out], [saver], [meta], [set()], None,
-                             f'train {method.name} {cfg.preset}', progress, method.progress)
+                             f'train {method.name} {cfg.preset}', progress, method.progress,
+                             _curve_points(curve, method, [cfg], learner, [meta]), curve)
     return Trained(method.name, cfg, learner, state, step, meta)
 
 
@@ -199,7 +221,8 @@ def _append(f, line: str) -> None:
 
 
 def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], savers: list, metas: list[dict],
-               skip: list[set], seeds: Optional[int], desc: str, progress: bool, shown: dict):
+               skip: list[set], seeds: Optional[int], desc: str, progress: bool, shown: dict,
+               points: Optional[Callable] = None, curve: Optional[Curve] = None):
     """The host side of training, shared by :func:`train` (``seeds=None``: one unvmapped state) and
     :func:`train_seeds` (``seeds=S``: every leaf stacked on a leading axis, one folder per seed).
 
@@ -208,7 +231,9 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
     no checkpoint of a non-finite state is ever written), append strict-JSON metric lines every
     ``log_every`` updates, move the bar, save checkpoints every ``checkpoint_every`` updates (not
     those in ``skip[i]``, already on disk). ``shown``: the metrics on the bar, ``{metric: short name}``
-    (the method's ``progress``). Returns ``(state, step)``.
+    (the method's ``progress``). ``points(step, i, state_i)``: after each checkpoint, seed ``i``'s
+    learning-curve metrics, appended as a line of their own (then ``curve.draw(outs)``). Returns
+    ``(state, step)``.
     """
     n = 1 if seeds is None else seeds
     pick = (lambda x, i: x) if seeds is None else (lambda x, i: x[i])
@@ -249,6 +274,8 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
                 for i, (saver, done) in enumerate(zip(savers, skip)):
                     if step not in done:
                         saver.save(step, jax.tree.map(lambda x, i=i: pick(x, i), state), metas[i])
+                if points is not None:
+                    _curve_point(points, state, step, cfg, metric_files, pick, n, bar, curve, outs)
     finally:
         for mf in metric_files:
             mf.close()
@@ -259,8 +286,22 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
     return state, step
 
 
+def _curve_point(points, state, step, cfg, metric_files, pick, n, bar, curve, outs) -> None:
+    """One point of the learning curve for every seed: a metric line of its own, the bar's postfix."""
+    got = [points(step, i, jax.tree.map(lambda x, i=i: pick(x, i), state)) for i in range(n)]
+    for mf, g in zip(metric_files, got if got[0] else []):  # a curve of the losses alone adds no line
+        _append(mf, _strict_json({'step': step, 'preset': cfg.preset, **{k: float(v) for k, v in g.items()}}) + '\n')
+    if bar is not None and 'eval/success' in got[0]:
+        bar.write(f'step {step}: success ' + ', '.join(f'{100 * g["eval/success"]:.0f}%' for g in got)
+                  + f' ({int(got[0].get("eval/episodes", 0))} development episodes'
+                  + (' per seed)' if n > 1 else ')'))
+    if curve.draw is not None:
+        curve.draw(list(outs))
+
+
 def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs: list[str], keys: jax.Array,
-                dataset_path: Optional[str] = None, progress: bool = True, log=print) -> list[Trained]:
+                dataset_path: Optional[str] = None, progress: bool = True, log=print,
+                curve: Optional[Curve] = None) -> list[Trained]:
     """Train ``S`` seeds of one method as one vmapped program, each into its own run folder.
 
     Every folder ends up as :func:`train` writes it (``config.json`` with its seed, its own
@@ -278,6 +319,7 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
         cfgs: one config per seed, equal except ``seed``.
         outs: ``S`` run folders.
         keys: ``[S, 2]`` initialisation keys (ignored for folders restored from a checkpoint).
+        curve: evaluated for every seed at every checkpoint step (:class:`Curve`).
     Returns:
         one :class:`Trained` per seed.
     """
@@ -292,10 +334,10 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
     with contextlib.ExitStack() as stack:
         for o in outs:
             stack.enter_context(files.run_lock(o))  # one writer per run folder
-        return _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log)
+        return _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log, curve)
 
 
-def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) -> list[Trained]:
+def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log, curve) -> list[Trained]:
     n, cfg = len(outs), cfgs[0]
     ds = ds_io.to_device(data)
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
@@ -329,7 +371,8 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log) ->
     chunk = jax.jit(jax.vmap(chunk_step(learner.update, cfg.updates_per_call), in_axes=(0, None)),
                     donate_argnums=0)
     state, step = _host_loop(chunk, state, ds, cfg, start, outs, savers, metas, [set(d) for d in done], n,
-                             f'train {method.name} {cfg.preset} x{n} seeds', progress, method.progress)
+                             f'train {method.name} {cfg.preset} x{n} seeds', progress, method.progress,
+                             _curve_points(curve, method, cfgs, learner, metas), curve)
     return [Trained(method.name, c, learner, jax.tree.map(lambda x, i=i: x[i], state), step, meta)
             for i, (c, meta) in enumerate(zip(cfgs, metas))]
 

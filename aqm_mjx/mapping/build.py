@@ -134,10 +134,11 @@ def _trim_to_count(graph: Graph, count: int) -> Graph:
     return trim(graph, min(graph.mask.shape[0], -(-count // 8) * 8))
 
 
-def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array) -> tuple[Graph, dict]:
+def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array, static: bool = False) -> tuple[Graph, dict]:
     """:func:`build_map` jitted (one compile per agent functions and config), then trimmed to the
     keypoint count rounded up to 8 (host side): the rollout's cost grows with K, so the padded
-    ``cfg.max_keypoints`` slots are cut to the ones used.
+    ``cfg.max_keypoints`` slots are cut to the ones used. ``static=True`` keeps every slot (a static
+    shape: one compiled evaluation for maps of any count, as a learning curve needs).
 
     Returns:
         (trimmed graph, ``{'keypoints': count, 'overflow': bool, 'seconds': float}``).
@@ -146,7 +147,7 @@ def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array) -> t
     build = _jitted_build((agent.encode, agent.dist), cfg)
     graph, kp = build(agent.aux, jnp.asarray(observations), key)
     n_kp = int(kp.count)
-    graph = _trim_to_count(graph, n_kp)
+    graph = graph if static else _trim_to_count(graph, n_kp)
     return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), seconds=time.perf_counter() - t0)
 
 
@@ -173,18 +174,19 @@ def _jitted_own_map(encode, mapper, max_len: int):
     return jax.jit(lambda aux, obs, ends, key: own_map(agent, aux, obs, ends, max_len, key))
 
 
-def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array) -> tuple[Graph, dict]:
+def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array, static: bool = False) -> tuple[Graph, dict]:
     """The map an agent plans on, from a dataset's arrays (``observations``, ``terminals``): the
     method's own (``agent.mapper``, GAS's, from every state) or keypoints (:func:`trimmed_map`), trimmed
-    to the node count rounded up to 8. Returns :func:`trimmed_map`'s ``(graph, info)``."""
+    to the node count rounded up to 8 (``static=True``: every slot). Returns :func:`trimmed_map`'s
+    ``(graph, info)``."""
     if agent.mapper is None:
-        return trimmed_map(agent, data['observations'], cfg, key)
+        return trimmed_map(agent, data['observations'], cfg, key, static)
     t0 = time.perf_counter()
     ends = trajectory_ends(data['terminals'])
     starts = np.concatenate([[0], np.flatnonzero(np.diff(ends)) + 1])
     build = _jitted_own_map(agent.encode, agent.mapper, int(np.max(ends[starts] - starts + 1)))
     graph, count, overflow = build(agent.aux, jnp.asarray(data['observations'], jnp.float32), jnp.asarray(ends), key)
     n = int(count)
-    if isinstance(graph, Graph):
+    if isinstance(graph, Graph) and not static:
         graph = _trim_to_count(graph, max(n, 1))
     return graph, dict(keypoints=n, overflow=bool(overflow), seconds=time.perf_counter() - t0)
