@@ -33,9 +33,11 @@ LOOP = {
 # A run's sections beside training. 'collect_episodes' is the data a run collects when no --dataset or
 # --collect-episodes is given (100 where a row does not say).
 RUN = {
+    # the wiring, not the skill: 4 collected episodes, 200 updates, 60-step episodes (compiling dominates)
     'ci': dict(map=dict(delta=0.5, max_keypoints=32, candidates=400),
                agent=dict(kappa=0.0, switch_radius=0.6),
-               protocol=dict(episodes=2, horizon=60, envs=64, calibration_episodes=20)),
+               protocol=dict(episodes=2, horizon=60, envs=64, calibration_episodes=20),
+               collect_episodes=4),
     # map and agent values measured at this scale (RESULTS.md sections 3-4); the AQM row on the stall rule
     # with parallel cuts 0.6 (the paper's single cut: cut_slack=0), its patience 6 x the calibration
     # pass's 90th percentile of the longest stall: stable across calibration keys where the 0.5% quantile

@@ -40,13 +40,26 @@ class ChunkBar:
     """A host hook that advances a tqdm-like ``bar`` (``update(n)``, ``refresh()``) in proportion to
     the steps done by the current chunk of ``count`` items."""
 
+    COMPILING = 'compiling the program (first chunk)'
+
     def __init__(self, bar):
         self.bar = bar
         self.count, self.steps, self.shown, self.base = 0, 1, 0.0, 0.0
         self.calls = 0  # host callbacks received (the overhead benchmark and the tests read it)
+        self.chunks = 0
+        self.noted = False  # the bar says that the first chunk compiles, until its first callback
+
+    def _note(self, text: str) -> None:
+        if hasattr(self.bar, 'set_postfix_str'):
+            self.bar.set_postfix_str(text, refresh=True)
+        self.noted = bool(text)
 
     def start(self, count: int, steps: int) -> None:
-        """A chunk of ``count`` items (episodes) of ``steps`` control steps each begins."""
+        """A chunk of ``count`` items (episodes) of ``steps`` control steps each begins (the first
+        one shows :data:`COMPILING` on the bar until it reports its first steps)."""
+        if self.chunks == 0:
+            self._note(self.COMPILING)
+        self.chunks += 1
         self.count, self.steps, self.shown = int(count), max(int(steps), 1), 0.0
         # chunks end on whole items: the bar's position is an integer up to float error
         self.base = float(round(getattr(self.bar, 'n', 0.0) or 0.0))
@@ -67,12 +80,16 @@ class ChunkBar:
 
     def __call__(self, done) -> None:
         self.calls += 1
+        if self.noted:  # the program runs: it has compiled
+            self._note('')
         target = self.count * min(int(done), self.steps) / self.steps
         if target > self.shown:
             self._advance(target)
 
     def finish(self) -> None:
         """The chunk ended: the bar stands exactly ``count`` items further than at :meth:`start`."""
+        if self.noted:
+            self._note('')
         self._advance(float(self.count))
 
 

@@ -104,6 +104,9 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
             + ', '.join(f'task {t}: {100 * row[f"task_{t}"]:.0f}%' for t in res.tasks) + f'); {rep["keypoints"]} '
             'keypoints; ' + ', '.join(f'{k[:-2]} {v:.0f} s' for k, v in times.items()))
         log(f'wrote {out}/summary.json; map and trajectories: {out}/eval/trajectories.png')
+        if cfg.train.preset == 'ci':
+            log(f'note: the ci preset checks the wiring ({cfg.train.steps} updates, {cfg.protocol.episodes} episodes '
+                'per task): its success rates say nothing about the method; --preset cpu is the smallest that does')
         return summary_
 
 

@@ -178,6 +178,23 @@ def test_the_bar_ends_exactly_at_its_total_after_many_chunks():
     assert ticks.calls == 500
 
 
+def test_the_bar_says_the_first_chunk_compiles_until_it_runs():
+    """Before the first chunk's first callback the bar's postfix names the compile; the first reported
+    steps clear it, and later chunks never show it."""
+    out = io.StringIO()
+    bar = tqdm(total=20, file=out, mininterval=0)
+    ticks = ChunkBar(bar)
+    ticks.start(10, 100)
+    assert bar.postfix == ChunkBar.COMPILING and ChunkBar.COMPILING in out.getvalue()
+    ticks(50)
+    assert not bar.postfix
+    ticks.finish()
+    ticks.start(10, 100)
+    assert not bar.postfix
+    ticks.finish()
+    bar.close()
+
+
 def test_chunking_by_hand():
     """250 episodes at 125 environments: 2 chunks of 125; at 250: one; 8 episodes at 4 on 8 devices:
     the chunk rounds up to 8, one chunk; 10 at 3 on 2 devices: chunks of 4, three of them."""

@@ -49,14 +49,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default=presets.DEFAULT, choices=presets.names(),
                    help='every default of the run: cpu (minutes on a 2-core CPU), cpu-long (about an hour: 400 '
-                        'episodes, 50,000 updates), paper (the paper\'s sizes; for a GPU), ci (seconds; tests)')
+                        'episodes, 50,000 updates), paper (the paper\'s sizes; for a GPU), ci (the wiring in a few minutes '
+                        'of compiling on a CPU, for tests; its success rates mean nothing)')
     r.add_argument('--set', action='append', metavar='SECTION.FIELD=VALUE',
                    help='override any config field, e.g. --set train.batch_size=512 --set map.delta=10 (a field '
                         'name alone where it is unique: --set steps=400); repeatable')
     r.add_argument('--out', default=None, help='run folder (default runs/ENV)')
     r.add_argument('--dataset', default=None, help='an OGBench-format .npz to train on instead of collecting')
     r.add_argument('--collect-episodes', type=int, default=None,
-                   help="navigate episodes to collect (1001 states each; default: the preset's, 100 or 400 for cpu-long)")
+                   help="navigate episodes to collect (1001 states each; default: the preset's: 100, 400 for cpu-long, "
+                        "4 for ci)")
     r.add_argument('--collect-batch', type=int, default=55,
                    help='episodes collected side by side (default: the 100 + 10 of the default run in 2 calls)')
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")

@@ -243,6 +243,7 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
         from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
         bar = tqdm(total=cfg.steps, initial=start, desc=desc, unit='upd', smoothing=0.1)
+        bar.set_postfix_str('compiling the training chunk (first call)', refresh=True)
     t_last, first, step = time.perf_counter(), True, start
     metric_files = [open(os.path.join(o, 'metrics.jsonl'), 'ab', buffering=0)  # pylint: disable=consider-using-with
                     for o in outs]
