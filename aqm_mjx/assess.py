@@ -18,6 +18,7 @@ import time
 from typing import Optional
 
 import jax
+import numpy as np
 
 from aqm_mjx import envs, files, presets
 from aqm_mjx.data import dataset as ds_io
@@ -26,7 +27,7 @@ from aqm_mjx.evaluation import plots, report
 from aqm_mjx.evaluation.evaluate import calibrate_then_evaluate, device_mesh, evaluate, make_program
 from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit, methods
-from aqm_mjx.mapping.build import method_map
+from aqm_mjx.mapping.build import candidate_rows, method_map
 from aqm_mjx.pipeline import RunConfig, stage_keys
 
 
@@ -197,6 +198,59 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
     return fit.Curve(point, draw)
 
 
+def dataset_of(checkpoint: str, meta: dict) -> Optional[str]:
+    """The dataset a run folder records (``config.json``'s ``dataset``); a relative path is read from
+    the folder (a shipped checkpoint's ``map_states.npz``)."""
+    path = meta.get('dataset')
+    return os.path.join(checkpoint, path) if path and not os.path.isabs(path) else path
+
+
+MAP_STATES = 'map_states.npz'
+
+
+def export_checkpoint(checkpoint: str, out: str, dataset: Optional[str] = None, seed: int = 0, log=print) -> dict:
+    """``aqm-mjx export``: a run folder small enough to ship. ``out`` gets the newest checkpoint,
+    ``config.json`` (its dataset: :data:`MAP_STATES`, in the folder), ``metrics.jsonl`` and
+    ``curves.png``, and :data:`MAP_STATES`: the ``map.candidates`` training states that the map of
+    ``aqm-mjx evaluate --seed seed`` draws, in its order (:func:`~aqm_mjx.mapping.build.candidate_rows`),
+    so that the shipped folder builds the map the full data gives, without the data. ``data.json``
+    keeps the training data's fingerprint (``config.json`` too, so a resume on the map states is
+    refused). Returns ``data.json``'s record."""
+    import shutil  # pylint: disable=import-outside-toplevel
+
+    env, _, cfg, path = prepare_evaluation(checkpoint, None, dataset, 'base', ())
+    if fit.load(checkpoint, log=lambda *_: None).agent.mapper is not None:
+        raise ValueError(f'{checkpoint}: {cfg.method} builds its map from whole trajectories; only a keypoint '
+                         'map is rebuilt from map states: ship it with its dataset')
+    if os.path.exists(out) and os.listdir(out):
+        raise FileExistsError(f'{out} is not empty; export into a new folder')
+    steps = fit.checkpoint_steps(checkpoint)
+    if not steps:
+        raise files.MissingFileError(f'{checkpoint} holds no checkpoint to export')
+    _, _, meta = fit.read_meta(checkpoint)
+    data = read_data(path, env)
+    _, k_map, _ = stage_keys(jax.random.PRNGKey(seed))
+    rows = jax.device_get(candidate_rows(len(data['observations']), cfg.map, k_map))
+    states = dict(observations=data['observations'][rows], actions=data['actions'][rows],
+                  terminals=np.ones(len(rows), bool))  # each state on its own: no transitions to train on
+    os.makedirs(os.path.join(out, 'checkpoints'), exist_ok=True)
+    shutil.copytree(os.path.join(checkpoint, 'checkpoints', str(steps[-1])),
+                    os.path.join(out, 'checkpoints', str(steps[-1])))
+    for name in ('metrics.jsonl', 'curves.png'):
+        if os.path.exists(os.path.join(checkpoint, name)):
+            shutil.copy2(os.path.join(checkpoint, name), os.path.join(out, name))
+    ds_io.write_ogbench(os.path.join(out, MAP_STATES), states)
+    files.write_json(os.path.join(out, 'config.json'), dict(meta, dataset=MAP_STATES))
+    record = dict(source=os.path.basename(path), data_sha256=meta.get('data_sha256') or ds_io.fingerprint(data),
+                  states=len(data['observations']),
+                  map_states=len(rows), map_seed=seed, map_candidates=cfg.map.candidates, step=steps[-1],
+                  map_states_sha256=ds_io.fingerprint(states), provenance=files.provenance())
+    files.write_json(os.path.join(out, 'data.json'), record)
+    log(f'wrote {out}: step {steps[-1]}, {len(rows):,} map states of {len(data["observations"]):,} '
+        f'({sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(out) for f in fs) / 2 ** 20:.1f} MiB)')
+    return record
+
+
 def prepare_evaluation(checkpoint: str, cfg: Optional[RunConfig], dataset: Optional[str], shift: str, overrides):
     """Everything an evaluation of ``checkpoint`` needs, checked before anything is loaded or built:
     ``(env, variants, RunConfig, dataset path)``."""
@@ -207,7 +261,7 @@ def prepare_evaluation(checkpoint: str, cfg: Optional[RunConfig], dataset: Optio
     variants = variants_for(env.maze, shift)
     if dataset and not os.path.exists(dataset):
         raise FileNotFoundError(f'--dataset {dataset}: no such file')
-    path = dataset or meta.get('dataset')
+    path = dataset or dataset_of(checkpoint, meta)
     if not path or not os.path.exists(path):
         raise FileNotFoundError(f'dataset {path!r} of {checkpoint} not found (keypoints are selected from its '
                                 'states); pass --dataset')

@@ -2,6 +2,7 @@
 
 import dataclasses
 import io
+import os
 import json
 import time
 import types
@@ -525,3 +526,27 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
     assert 'no such file' in capsys.readouterr().err
     assert cli.main(['evaluate', '--checkpoint', str(out), '--tasks', '9', '--out', str(ev)]) == 2
     assert 'task ids [9]' in capsys.readouterr().err
+
+
+def test_an_exported_folder_builds_the_same_map_and_scores_the_same_without_the_data(tmp_path):
+    """`aqm-mjx export` keeps the newest checkpoint and the map's candidate states: evaluated from the
+    export alone (the dataset moved away), the keypoints, edges and every episode equal the run's own
+    evaluation; the record keeps the training data's fingerprint; a non-empty target is refused."""
+    from aqm_mjx import assess, cli, run  # pylint: disable=import-outside-toplevel
+    ckpt, path = run.demo_run(str(tmp_path / 'demo'), steps=100)
+    ship = str(tmp_path / 'ship')
+    assert cli.main(['export', '--checkpoint', ckpt, '--out', ship]) == 0
+    record = json.load(open(os.path.join(ship, 'data.json')))
+    assert record['data_sha256'] == fit.read_meta(ckpt)[2]['data_sha256'] and len(record['data_sha256']) == 64
+    assert record['map_states'] == 400 == record['map_candidates']
+    assert json.load(open(os.path.join(ship, 'config.json')))['dataset'] == 'map_states.npz'
+    assert sorted(os.listdir(os.path.join(ship, 'checkpoints'))) == ['100']
+    argv = ['--episodes', '2', '--horizon', '40', '--calibrate', 'none', '--ablations', 'no-pruning']
+    assert cli.main(['evaluate', '--checkpoint', ckpt, '--out', str(tmp_path / 'full'), *argv]) == 0
+    os.rename(path, path + '.away')  # the export does not need the data
+    assert cli.main(['evaluate', '--checkpoint', ship, '--out', str(tmp_path / 'shipped'), *argv]) == 0
+    full, shipped = (json.load(open(str(tmp_path / f / 'results.json'))) for f in ('full', 'shipped'))
+    assert shipped['keypoints'] == full['keypoints'] >= 2 and shipped['edges'] == full['edges']
+    assert shipped['summary'] == full['summary'] and shipped['legs'] == full['legs']
+    with pytest.raises(FileExistsError, match='not empty'):
+        assess.export_checkpoint(ckpt, ship, dataset=path + '.away')

@@ -267,3 +267,12 @@ def cmd_merge(a):
 
     compare.merge(a.folders, a.out)
     return 0
+
+
+def cmd_export(a):
+    """A run folder made small enough to ship: newest checkpoint and the map's candidate states."""
+    enable_compile_cache()
+    from aqm_mjx import assess  # pylint: disable=import-outside-toplevel
+
+    assess.export_checkpoint(a.checkpoint, a.out, dataset=a.dataset, seed=a.seed)
+    return 0

@@ -195,4 +195,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument('folders', nargs='+', metavar='FOLDER', help='comparison folders (aqm-mjx compare --out)')
     g.add_argument('--out', required=True, help='folder of the merged table (not one of the comparisons)')
     g.set_defaults(fn=commands.cmd_merge)
+    x = sub.add_parser(
+        'export', help='a trained run folder made small enough to ship (newest checkpoint and its map states)',
+        description='Copy a run folder\'s newest checkpoint, config.json, metrics.jsonl and curves.png into OUT, '
+                    'with OUT/map_states.npz: the training states that the map of `aqm-mjx evaluate --seed SEED` '
+                    'draws as candidates, so that `aqm-mjx evaluate --checkpoint OUT` builds the same map without '
+                    'the dataset. OUT/data.json keeps the training data\'s fingerprint. Keypoint maps only.')
+    x.add_argument('--checkpoint', required=True, help='run folder (aqm-mjx train / run / compare)')
+    x.add_argument('--dataset', default=None, help="the run's training data (default: the path config.json records)")
+    x.add_argument('--seed', type=int, default=0, help='the evaluation seed whose map the states reproduce')
+    x.add_argument('--out', required=True, help='a new (or empty) folder, e.g. checkpoints/NAME')
+    x.set_defaults(fn=commands.cmd_export)
     return p

@@ -113,13 +113,18 @@ def build_map(agent: Agent, observations: jax.Array, cfg: MapConfig, key: jax.Ar
         (:class:`Graph`, :class:`~aqm_mjx.mapping.keypoints.Keypoints` with indices into the candidates).
     """
     aux = agent.aux if aux is None else aux
-    k_sub, k_sel = jax.random.split(key)
-    n = observations.shape[0]
-    m = min(n, int(cfg.candidates))
-    idx = jax.random.permutation(k_sub, n)[:m] if m < n else jnp.arange(n)
-    cand = observations[idx]
+    k_sel = jax.random.split(key)[1]
+    cand = observations[candidate_rows(observations.shape[0], cfg, key)]
     lat = jax.vmap(lambda o: agent.encode(aux, o))(cand)
     return keypoint_graph(lambda x, y: agent.dist(aux, x, y), lat, cand, k_sel, cfg)
+
+
+def candidate_rows(n: int, cfg: MapConfig, key: jax.Array) -> jax.Array:
+    """Rows of ``n`` dataset states that :func:`build_map` encodes as candidates under ``key``:
+    ``min(n, cfg.candidates)`` drawn uniformly without replacement (all of them, in order, when
+    there are no more). A file of exactly these states, in this order, gives the same map."""
+    m = min(n, int(cfg.candidates))
+    return jax.random.permutation(jax.random.split(key)[0], n)[:m] if m < n else jnp.arange(n)
 
 
 @functools.lru_cache(maxsize=16)
