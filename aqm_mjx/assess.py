@@ -208,6 +208,30 @@ def dataset_of(checkpoint: str, meta: dict) -> Optional[str]:
 MAP_STATES = 'map_states.npz'
 
 
+def learned_map_panels(checkpoint: str, deltas=(), dataset: Optional[str] = None, seed: int = 0):
+    """``aqm-mjx render --checkpoint``: the map a trained run plans on, built as its evaluation builds
+    it (the map key of ``PRNGKey(seed)``, candidates from its dataset or map states), one panel per
+    ``delta`` (default the preset's). Returns ``(grid, panels)`` for
+    :func:`aqm_mjx.envs.render.render_panels`."""
+    from aqm_mjx.mapping.graph import components, edge_list  # pylint: disable=import-outside-toplevel
+
+    env, _, cfg, path = prepare_evaluation(checkpoint, None, dataset, 'base', ())
+    trained = fit.load(checkpoint, log=lambda *_: None)
+    if not trained.agent.plans:
+        raise ValueError(f'{checkpoint}: {trained.method} has no quasimetric and plans on no map')
+    data = read_data(path, env)
+    _, k_map, _ = stage_keys(jax.random.PRNGKey(seed))
+    panels = []
+    for delta in list(deltas) or [cfg.map.delta]:
+        graph, info = method_map(trained.agent, data, dataclasses.replace(cfg.map, delta=float(delta)), k_map)
+        mask = np.asarray(graph.mask)
+        n_comp = int(components(graph.w, graph.mask)[1])
+        panels.append(dict(nodes_xy=np.asarray(graph.obs)[mask, :2], edges=edge_list(np.asarray(graph.w)[mask][:, mask]),
+                           title=f'{trained.method} step {trained.step}, delta {delta:g}: {info["keypoints"]} '
+                                 f'keypoints, {n_comp} component(s)'))
+    return env.layout, panels
+
+
 def export_checkpoint(checkpoint: str, out: str, dataset: Optional[str] = None, seed: int = 0, log=print) -> dict:
     """``aqm-mjx export``: a run folder small enough to ship. ``out`` gets the newest checkpoint,
     ``config.json`` (its dataset: :data:`MAP_STATES`, in the folder), ``metrics.jsonl`` and
@@ -358,7 +382,8 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
                     summary=table, config=prepared[0][2].to_dict(), provenance=files.provenance())
     files.write_json(os.path.join(out, 'results.json'), combined, makedirs=True)
     plots.success_bars(table, first, res.tasks, os.path.join(out, 'success.png'),
-                       title=f'{env.name} ({first}): every checkpoint on the same episodes')
+                       title=f'{env.name} ({first}): every checkpoint on the same episodes',
+                       episodes=prepared[0][2].protocol.episodes)
     width = max(len(k) for k in table)
     log(f'{"checkpoint/agent":<{width}}  mean success ({first})')
     for k, row in table.items():

@@ -550,3 +550,46 @@ def test_an_exported_folder_builds_the_same_map_and_scores_the_same_without_the_
     assert shipped['summary'] == full['summary'] and shipped['legs'] == full['legs']
     with pytest.raises(FileExistsError, match='not empty'):
         assess.export_checkpoint(ckpt, ship, dataset=path + '.away')
+
+
+def test_pictures_carry_legends_intervals_and_readable_labels(tmp_path):
+    """Trajectory panels share one legend naming every mark drawn (graph, plan, trajectory, pruned
+    edges, closed cell); success bars carry 95% Wilson whiskers when the episode count is known (by
+    hand: 5 of 10 -> [23.7, 76.3]) and legends read 'qrl seed 0: aqm', not the table key."""
+    from matplotlib.container import ErrorbarContainer  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx.envs import render  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.evaluation import plots  # pylint: disable=import-outside-toplevel
+
+    base = mazes.layout('medium')
+    closed = shifts.suite('medium')['close-3-3']
+    nodes = np.array([[0.0, 0.0], [4.0, 0.0], [8.0, 0.0]])
+    panel = dict(grid=closed, base_grid=base, nodes_xy=nodes, edges=np.array([[0, 1], [1, 2]]),
+                 pruned_edges=np.array([[1, 2]]), path_xy=nodes[:2], trajectories=[nodes], start_xy=nodes[0],
+                 goal_xy=nodes[2], title='close-3-3: a title long enough that it has to wrap onto a second line')
+    fig = render.render_panels(base, [panel, dict(panel, grid=base)])
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert {'closed cell', 'graph edges', 'pruned edges', 'keypoints', 'trajectory', 'plan', 'start',
+            'goal'} <= set(labels) and len(labels) == len(set(labels))
+    assert '\n' in fig.axes[0].get_title()
+    summary = {'qrl:seed_0/aqm': {'base': {'task_1': 0.5, 'task_2': 1.0, 'mean': 0.75}}}
+    fig = plots.success_bars(summary, 'base', [1, 2], episodes=10)
+    ax = fig.axes[0]
+    bars = [c for c in ax.containers if isinstance(c, ErrorbarContainer)]
+    assert len(bars) == 1
+    segs = bars[0].lines[2][0].get_segments()
+    np.testing.assert_allclose([segs[0][0][1], segs[0][1][1]], [23.66, 76.34], atol=0.01)
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ['qrl seed 0: aqm']
+
+
+def test_render_draws_a_trained_runs_map(tmp_path, capsys):
+    from aqm_mjx import run  # pylint: disable=import-outside-toplevel
+
+    ckpt, _ = run.demo_run(str(tmp_path / 'demo'), steps=50)
+    out = str(tmp_path / 'map.png')
+    assert cli.main(['render', '--checkpoint', ckpt, '--deltas', '0.5', '1.0', '--out', out]) == 0
+    titles = [ln for ln in capsys.readouterr().out.splitlines() if 'keypoints' in ln]
+    assert len(titles) == 2 and all(t.startswith('aqm step 50, delta ') for t in titles)
+    counts = [int(t.split(': ')[1].split()[0]) for t in titles]
+    assert counts[0] >= counts[1] >= 1  # a larger repel radius keeps fewer keypoints
+    assert os.path.getsize(out) > 10_000

@@ -44,6 +44,15 @@ def cmd_render(a):
     bad = [d for d in a.deltas or () if not (d > 0 and d < float('inf'))]
     if bad:
         raise ValueError(f'--deltas must be finite numbers > 0; got {bad}')
+    if a.checkpoint:
+        from aqm_mjx import assess  # pylint: disable=import-outside-toplevel
+
+        grid, panels = assess.learned_map_panels(a.checkpoint, a.deltas or (), dataset=a.dataset)
+        render_panels(grid, panels, a.out)
+        for p in panels:
+            print(p['title'])
+        print(f'wrote {a.out}')
+        return 0
     if a.deltas:
         from aqm_mjx.agent.oracle import keypoint_map_panels  # pylint: disable=import-outside-toplevel
 

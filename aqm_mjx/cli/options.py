@@ -76,7 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument('--env', default='antmaze-medium')
     d.add_argument('--out', default='maze.png')
     d.add_argument('--deltas', type=float, nargs='*', default=None,
-                   help='draw IWE keypoint maps for these delta values (m), with the exact maze distance')
+                   help='draw IWE keypoint maps for these delta values: with --checkpoint in the learned '
+                        "quasimetric's units (default the preset's), else in metres with the exact maze distance")
+    d.add_argument('--checkpoint', default=None, help="draw a trained run's map (built as its evaluation builds it)")
+    d.add_argument('--dataset', default=None, help="with --checkpoint: its data (default: config.json's)")
     d.set_defaults(fn=commands.cmd_render)
     c = sub.add_parser(
         'collect', help='collect an OGBench-format dataset in MJX with the scripted expert',

@@ -51,30 +51,36 @@ def draw_maze(ax, grid, *, base_grid=None, start_xy=None, goal_xy=None, agent_xy
     x0, x1, y0, y1 = maze_extent(grid)
     ax.set_facecolor('#f4f1ea')
     u = mazes.MAZE_UNIT
+    added = False
     for i, j in zip(*np.nonzero(grid)):
         x, y = mazes.ij_to_xy((i, j))
-        color = '#3b4252'
+        color, label = '#3b4252', None
         if base_grid is not None and np.asarray(base_grid)[i, j] == 0:
             color = '#bf616a'  # a wall added to the layout (closed corridor, obstacle)
-        ax.add_patch(_rect(x - u / 2, y - u / 2, u, color))
+            label, added = (None if added else 'closed cell'), True
+        ax.add_patch(_rect(x - u / 2, y - u / 2, u, color, label=label))
     if base_grid is not None:
-        for i, j in zip(*np.nonzero((np.asarray(base_grid) == 1) & (grid == 0))):
+        for k, (i, j) in enumerate(zip(*np.nonzero((np.asarray(base_grid) == 1) & (grid == 0)))):
             x, y = mazes.ij_to_xy((i, j))
-            ax.add_patch(_rect(x - u / 2, y - u / 2, u, '#a3be8c', alpha=0.5))  # an opened passage
+            ax.add_patch(_rect(x - u / 2, y - u / 2, u, '#a3be8c', alpha=0.5,  # an opened passage
+                               label='opened cell' if k == 0 else None))
     if edges is not None and nodes_xy is not None:
         nodes = np.asarray(nodes_xy)
-        for a, b in np.asarray(edges):
-            ax.plot(nodes[[a, b], 0], nodes[[a, b], 1], color='#5e81ac', lw=0.6, alpha=0.5, zorder=2)
+        for k, (a, b) in enumerate(np.asarray(edges)):
+            ax.plot(nodes[[a, b], 0], nodes[[a, b], 1], color='#5e81ac', lw=0.6, alpha=0.5, zorder=2,
+                    label='graph edges' if k == 0 else None)
     if pruned_edges is not None and nodes_xy is not None:
         nodes = np.asarray(nodes_xy)
-        for a, b in np.asarray(pruned_edges):
-            ax.plot(nodes[[a, b], 0], nodes[[a, b], 1], color='#bf616a', lw=1.5, ls='--', zorder=4)
+        for k, (a, b) in enumerate(np.asarray(pruned_edges)):
+            ax.plot(nodes[[a, b], 0], nodes[[a, b], 1], color='#bf616a', lw=1.5, ls='--', zorder=4,
+                    label='pruned edges' if k == 0 else None)
     if nodes_xy is not None:
         nodes = np.asarray(nodes_xy)
         ax.scatter(nodes[:, 0], nodes[:, 1], s=12, color='#5e81ac', zorder=3, label='keypoints')
     for k, tr in enumerate(trajectories or ()):
         tr = np.asarray(tr)
-        ax.plot(tr[:, 0], tr[:, 1], lw=1.0, alpha=0.8, zorder=5, color=f'C{k % 10}')
+        ax.plot(tr[:, 0], tr[:, 1], lw=1.0, alpha=0.8, zorder=5, color=f'C{k % 10}',
+                label='trajectory' if k == 0 else None)
     if path_xy is not None:
         p = np.asarray(path_xy)
         ax.plot(p[:, 0], p[:, 1], color='#d08770', lw=2.5, zorder=6, marker='o', ms=4, label='plan')
@@ -94,15 +100,18 @@ def draw_maze(ax, grid, *, base_grid=None, start_xy=None, goal_xy=None, agent_xy
     ax.set_aspect('equal')
     ax.set_xlabel('x (m)')
     ax.set_ylabel('y (m)')
-    if title:
-        ax.set_title(title)
+    if title:  # wrapped to the panel's width (about 6 characters per inch at this size), never clipped
+        import textwrap  # pylint: disable=import-outside-toplevel
+
+        ax.set_title(textwrap.fill(title, max(24, int(6.5 * ax.get_figure().get_size_inches()[0]
+                                                      / max(1, len(ax.get_figure().axes))))), fontsize=10)
     return ax
 
 
-def _rect(x, y, s, color, alpha=1.0):
+def _rect(x, y, s, color, alpha=1.0, label=None):
     from matplotlib.patches import Rectangle  # pylint: disable=import-outside-toplevel
 
-    return Rectangle((x, y), s, s, facecolor=color, edgecolor='none', alpha=alpha, zorder=1)
+    return Rectangle((x, y), s, s, facecolor=color, edgecolor='none', alpha=alpha, zorder=1, label=label)
 
 
 def _circle(x, y, r):
@@ -143,18 +152,26 @@ def render_panels(grid, panels: Sequence[dict], path: Optional[str] = None, *, n
     nrows = (n + ncols - 1) // ncols
     fig, axes = plt.subplots(nrows, ncols, figsize=(ncols * (0.45 * w + 1.0), nrows * (0.45 * h + 1.0)), dpi=dpi,
                              squeeze=False)
+    legend = {}
     for ax, kw in zip(axes.ravel(), panels):
         kw = dict(kw)
         draw_maze(ax, kw.pop('grid', grid), **kw)
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(lab, h)  # one legend for every panel: each kind of mark once
     for ax in axes.ravel()[n:]:
         ax.axis('off')
+    if legend:
+        fig.legend(list(legend.values()), list(legend), loc='upper center', bbox_to_anchor=(0.5, 0.0),
+                   ncol=min(len(legend), 8), fontsize=8, frameon=False)
     return finish(plt, fig, path)
 
 
 def finish(plt, fig, path):
-    """Lay out ``fig``, save it to ``path`` when given (and close it there); returns the figure."""
+    """Lay out ``fig``, save it to ``path`` when given (and close it there); returns the figure. The
+    saved picture is cut to everything drawn, so titles, colour-bar labels and legends outside the
+    axes are never clipped."""
     fig.tight_layout()
     if path is not None:
-        fig.savefig(path)
+        fig.savefig(path, bbox_inches='tight', pad_inches=0.1)
         plt.close(fig)
     return fig

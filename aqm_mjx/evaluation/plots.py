@@ -12,8 +12,18 @@ import numpy as np
 from aqm_mjx.envs import render
 
 
-def success_bars(summary: dict, variant: str, tasks: Sequence[int], path: Optional[str] = None, title: str = ''):
-    """Grouped bars: success rate per task (and the mean) for every agent, on one variant."""
+def pretty_label(key: str) -> str:
+    """A table key as a legend reads it: ``'qrl:seed_0/aqm'`` -> ``'qrl seed 0: aqm'``."""
+    key = key.replace(':seed_', ' seed ')
+    return key.replace('/', ': ', 1) if '/' in key else key
+
+
+def success_bars(summary: dict, variant: str, tasks: Sequence[int], path: Optional[str] = None, title: str = '',
+                 episodes: Optional[int] = None):
+    """Grouped bars: success rate per task (and the mean) for every agent, on one variant; with
+    ``episodes`` (per task) each bar has its 95% Wilson interval (the mean's over every task's)."""
+    from aqm_mjx.evaluation.stats import wilson  # pylint: disable=import-outside-toplevel
+
     plt = render.pyplot()
     agents = list(summary)
     cols = [f'task_{t}' for t in tasks] + ['mean']
@@ -22,13 +32,20 @@ def success_bars(summary: dict, variant: str, tasks: Sequence[int], path: Option
     for k, a in enumerate(agents):
         vals = [100 * summary[a][variant][c] for c in cols]
         x = np.arange(len(cols)) + (k - (len(agents) - 1) / 2) * width
-        bars = ax.bar(x, vals, width, label=a)
-        for b, v in zip(bars, vals):
-            ax.text(b.get_x() + b.get_width() / 2, v + 1, f'{v:.0f}', ha='center', fontsize=7)
+        bars = ax.bar(x, vals, width, label=pretty_label(a))
+        tops = list(vals)
+        if episodes:
+            ns = [episodes] * len(tasks) + [episodes * len(tasks)]
+            ci = np.array([wilson(v / 100 * n, n) for v, n in zip(vals, ns)]) * 100
+            ax.errorbar(x, vals, yerr=np.clip([np.array(vals) - ci[:, 0], ci[:, 1] - np.array(vals)], 0, None), fmt='none',
+                        ecolor='k', elinewidth=0.7, capsize=2)
+            tops = list(ci[:, 1])
+        for b, v, top in zip(bars, vals, tops):
+            ax.text(b.get_x() + b.get_width() / 2, top + 1, f'{v:.0f}', ha='center', fontsize=7)
     ax.set_xticks(np.arange(len(cols)), [c.replace('_', ' ') for c in cols])
-    ax.set_ylim(0, 110)
-    ax.set_ylabel('success (%)')
-    ax.set_title(title or f'success per task ({variant})')
+    ax.set_ylim(0, 112)
+    ax.set_ylabel('success (%)' + (' [95% Wilson]' if episodes else ''))
+    ax.set_title(textwrap.fill(title or f'success per task ({variant})', 90), fontsize=9)
     ax.legend(fontsize=8, frameon=False, loc='upper left', bbox_to_anchor=(1.0, 1.0))
     return render.finish(plt, fig, path)  # pylint: disable=protected-access
 

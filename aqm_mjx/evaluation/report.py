@@ -53,7 +53,7 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
     write_json(os.path.join(out, 'results.json'), report)
     first = res.variants[0]
     plots.success_bars(res.summary, first, res.tasks, os.path.join(out, 'success.png'),
-                       title=f'{env_name} ({first}): success per task, {episodes} episodes each')
+                       title=f'{env_name} ({first}): success per task, {episodes} episodes each', episodes=episodes)
     plots.trajectory_panels(layout, variants, res.traces, nodes_xy, edges, res.agents[0], res.tasks[0],
                             os.path.join(out, 'trajectories.png'))
     if len(variants) > 1:
