@@ -1,4 +1,4 @@
-"""The two backends on the same episodes: speed and agreement (issue 18).
+"""The two backends on the same episodes: speed and agreement.
 
     python benchmarks/bench_backends.py --checkpoint RUN/train --episodes 50 --out benchmarks/results/backends_cpu.json
 

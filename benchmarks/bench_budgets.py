@@ -1,4 +1,4 @@
-"""Budgets in the learned controller's own time (issue 17): calibrate, then compare the rules.
+"""Budgets in the learned controller's own time: calibrate, then compare the rules.
 
     python benchmarks/bench_budgets.py --checkpoint RUN/train/aqm/seed_0 --checkpoint RUN/train/aqm/seed_1 \
         --episodes 20 --out benchmarks/results/budgets_cpu

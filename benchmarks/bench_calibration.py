@@ -10,8 +10,8 @@ training layout, between start and goal cells that no evaluation task uses. From
 ``--false-alarm`` rate: the stall rule's patience, the fixed rule's kappa and the paper's rule's
 kappa (keypoint edges alone); at each ``--stall-scale`` C, the stall rule's patience as
 ``protocol.stall_scale`` sets it (C x the 90th percentile of the longest stall, rounded to a step).
-Prints min / median / max over the keys and the spread (max / min - 1, the issue's "moves by at
-most 20%"); ``--out`` writes the rows as JSON.
+Prints min / median / max over the keys and the spread (max / min - 1; a stable rule moves by at
+most 20%); ``--out`` writes the rows as JSON.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The training-layout half of the paper's Figure 3 (issue 17): one model per training layout, every
+"""The training-layout half of the paper's Figure 3: one model per training layout, every
 model on every layout, as a cross heatmap (rows: training layout, columns: evaluation layout).
 
     python benchmarks/bench_cross.py --env antmaze-medium --layouts base close-3-3 close-6-2 \

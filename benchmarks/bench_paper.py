@@ -1,9 +1,9 @@
-"""AQM at the paper's scale (issue 17, item 6): one command for a GPU.
+"""AQM at the paper's scale: one command for a GPU.
 
     python benchmarks/bench_paper.py --out runs/paper                 # all six cases, 4 seeds each
     python benchmarks/bench_paper.py --cases medium-navigate --seeds 2 --out runs/paper
     python benchmarks/bench_paper.py --cases medium-navigate large-navigate --seeds 2 \
-        --methods aqm gcbc gcivl gciql qrl crl hiql saw --out runs/paper-baselines   # issue 16's GPU table
+        --methods aqm gcbc gcivl gciql qrl crl hiql saw --out runs/paper-baselines   # the baselines at the paper preset
 
 For every case ``MAZE-STYLE`` (antmaze medium / large / giant, navigate / stitch):
 

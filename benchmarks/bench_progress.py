@@ -1,5 +1,5 @@
 """What the moving progress bar costs: the evaluation program with its host hook against the same
-program without it, on the same episodes, in one run (issue 18, item 3).
+program without it, on the same episodes, in one run.
 
     python benchmarks/bench_progress.py                    # CPU: antmaze-medium, 64 envs x 500 steps, ~5 minutes
     python benchmarks/bench_progress.py --batch 4096 --steps 1000      # on a GPU
