@@ -24,3 +24,15 @@ def test_notebook_runs(path, monkeypatch, tmp_path):
     outputs = [o for c in nb.cells if c.cell_type == 'code' for o in c.get('outputs', [])]
     assert not [o for o in outputs if o.get('output_type') == 'error']
     assert any('image/png' in o.get('data', {}) for o in outputs), 'no figure was drawn'
+
+
+@pytest.mark.parametrize('path', NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebooks_are_committed_with_their_outputs(path):
+    """What a repository page shows: every code cell executed in order, at least one figure, no error
+    (`python notebooks/execute.py` writes them)."""
+    nb = nbformat.read(path, as_version=4)
+    code = [c for c in nb.cells if c.cell_type == 'code']
+    assert [c.get('execution_count') for c in code] == list(range(1, len(code) + 1)), 'not executed in order'
+    outputs = [o for c in code for o in c.get('outputs', [])]
+    assert not [o for o in outputs if o.get('output_type') == 'error']
+    assert any('image/png' in o.get('data', {}) for o in outputs), 'committed without its figures'

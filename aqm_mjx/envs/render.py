@@ -72,7 +72,7 @@ def draw_maze(ax, grid, *, base_grid=None, start_xy=None, goal_xy=None, agent_xy
     if pruned_edges is not None and nodes_xy is not None:
         nodes = np.asarray(nodes_xy)
         for k, (a, b) in enumerate(np.asarray(pruned_edges)):
-            ax.plot(nodes[[a, b], 0], nodes[[a, b], 1], color='#bf616a', lw=1.5, ls='--', zorder=4,
+            ax.plot(nodes[[a, b], 0], nodes[[a, b], 1], color='#bf616a', lw=2.0, ls='--', zorder=6.5,
                     label='pruned edges' if k == 0 else None)
     if nodes_xy is not None:
         nodes = np.asarray(nodes_xy)
