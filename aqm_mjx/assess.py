@@ -160,14 +160,15 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
     """The learning curve of a training run (:class:`~aqm_mjx.learn.fit.Curve`; None when
     ``cfg.protocol.curve_episodes`` is 0): at every checkpoint, the method's agent without pruning
     (its planner, or its flat controller) on ``curve_episodes`` development episodes per task of the
-    training layout, mapped from ``data``'s states with every map slot kept, so one compiled chunk
+    training layout (in ``curve_backend``'s physics, default the protocol's), mapped from ``data``'s states with every map slot kept, so one compiled chunk
     serves every point; the same episodes at every point (``key``). Each point is
     ``{'eval/success', 'eval/episodes', 'eval/seconds'}``; ``draw`` redraws ``FOLDER/curves.png``
     (the method's progress metrics and success, a line per seed)."""
     n = cfg.protocol.curve_episodes
     if not n:
         return None
-    protocol = dataclasses.replace(cfg.protocol, episodes=n, ablations=(), calibrate='none', split='dev')
+    protocol = dataclasses.replace(cfg.protocol, episodes=n, ablations=(), calibrate='none', split='dev',
+                                   backend=cfg.protocol.curve_backend or cfg.protocol.backend)
     agent_cfg = dataclasses.replace(cfg.agent, kappa=math.inf, patience=0.0)
     variants = {'base': env.layout}
     k_map, k_eval = jax.random.split(key)
@@ -185,6 +186,8 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
             shown[trained.method] = [k for k in methods.get(trained.method).progress if k != 'phase']
         res = evaluate(env, agent, graph, agent_cfg, protocol, variants, k_eval, program=programs[trained.method],
                        progress=False)
+        if protocol.workers and hasattr(programs[trained.method], 'close'):  # worker processes do not outlive a point
+            programs.pop(trained.method).close()
         return {'eval/success': res.summary[res.agents[0]]['base']['mean'], 'eval/episodes': n * len(res.tasks),
                 'eval/seconds': time.perf_counter() - t0}
 

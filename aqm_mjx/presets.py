@@ -44,13 +44,16 @@ RUN = {
     # was not, and the larger closure gain on four models' development episodes
     # (benchmarks/results/diagnose_closures_dev/NOTES.md); kappas (fixed rule, paper=cal) at the protocol's
     # false-alarm rate
-    # learning curve: 2 development episodes per task at every checkpoint (about 20 s a point in MJX here)
+    # learning curve: 2 development episodes per task at every checkpoint, in OGBench's environments (on a
+    # 2-core CPU about 8 s a point there, 33 s in MJX)
     'cpu': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
-                protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2)),
+                protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2,
+                              curve_backend='ogbench')),
     # antmaze-large navigate with 2 seeds in about an hour on a 2-core CPU: 4x the data, 2.5x the updates;
     # the paper's single cut (parallel cuts were not measured on antmaze-large: RESULTS.md section 13)
     'cpu-long': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
-                     protocol=dict(episodes=20, envs=64, calibrate='stall', curve_episodes=2),
+                     protocol=dict(episodes=20, envs=64, calibrate='stall', curve_episodes=2,
+                                   curve_backend='ogbench'),
                      collect_episodes=400),
     # the paper's sizes (Appendix 10): delta 10 (its best in Figure 10, swept 10-25), OGBench's 50 episodes
     'paper': dict(map=dict(delta=10.0), agent=dict(kappa=0.25, switch_radius=5.0),

@@ -73,6 +73,8 @@ class ProtocolConfig:
                         "every table) or 'dev' (where settings are chosen)", choices=SPLITS)
     curve_episodes: int = option(0, "learning curve: development episodes per task of the training layout, run at "
                                  "every checkpoint while a run trains (the planner without pruning); 0: none")
+    curve_backend: str = option('', "learning curve: physics of its episodes ('mjx', 'ogbench'; '': the protocol's "
+                                "backend)", choices=('',) + BACKENDS)
 
     def __post_init__(self):
         cfg_lib.check_types(self)
@@ -84,6 +86,9 @@ class ProtocolConfig:
         if not math.isfinite(self.stall_scale) or self.stall_scale < 0:
             raise ValueError(f'ProtocolConfig.stall_scale must be a finite number >= 0 (0: the false_alarm '
                              f'quantile); got {self.stall_scale!r}')
+        if self.curve_backend not in ('',) + BACKENDS:
+            raise ValueError(f'unknown ProtocolConfig.curve_backend {self.curve_backend!r}; expected one of '
+                             f'{", ".join(BACKENDS)} or empty (the protocol\'s backend)')
         if self.backend not in BACKENDS:
             raise ValueError(f'unknown ProtocolConfig.backend {self.backend!r}; expected one of {", ".join(BACKENDS)}')
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
