@@ -151,3 +151,23 @@ def test_readme_names_every_module():
     missing = [str(p.relative_to(ROOT)) for _, p in modules()
                if p.name not in ('__init__.py', '_mjx.py') and f'`{p.relative_to(ROOT)}`' not in readme]
     assert not missing, f'README.md does not name {missing}'
+
+
+def test_readme_is_a_front_page():
+    """README stays a front page: about 200 lines, present tense (no dates, no issue numbers, no
+    sessions), one install-and-run command and one test command, which .ci/run calls; the pictures
+    and links it shows exist."""
+    import re  # pylint: disable=import-outside-toplevel
+
+    top = ROOT.parent
+    readme = (top / 'README.md').read_text()
+    assert len(readme.splitlines()) <= 210, len(readme.splitlines())
+    assert not re.findall(r'\b20\d\d-\d\d-\d\d\b', readme) and not re.findall(r'\bissues? \d+', readme, re.I)
+    assert 'session' not in readme.lower()
+    blocks = re.findall(r'```bash\n(.*?)```', readme, re.S)
+    installs = [ln for b in blocks for ln in b.splitlines() if ln.startswith('python3 -m venv')]
+    assert len(installs) == 2 and installs[0].endswith('aqm-mjx run') and 'pytest' in installs[1]
+    assert installs[1] in (top / '.ci' / 'run').read_text()
+    for target in re.findall(r'\]\(([^)#]+)(?:#[^)]*)?\)', readme):
+        if not target.startswith('http'):
+            assert (top / target).exists(), target
