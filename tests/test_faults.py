@@ -740,5 +740,6 @@ def test_training_bar_draws_once_per_chunk(tmp_path, grid_data, monkeypatch):
     cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=100)
     fit.train('gcbc', cfg, grid_data, str(tmp_path / 'run'), progress=True, log=lambda *_: None)
     u = cfg.updates_per_call
-    assert 100 % u == 0 and draws == [0] + list(range(u, 101, u)) + [100]  # open, each chunk, close
+    # open, the 'compiling' note before the first chunk, each chunk, close
+    assert 100 % u == 0 and draws == [0, 0] + list(range(u, 101, u)) + [100]
     assert list(bars[0].postfix_seen) == ['actor']  # gcbc's loss, under its label
