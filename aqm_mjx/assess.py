@@ -14,8 +14,9 @@ import dataclasses
 import json
 import math
 import os
+import shutil
 import time
-from typing import Optional
+from typing import Callable, Optional
 
 import jax
 import numpy as np
@@ -172,7 +173,7 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
     agent_cfg = dataclasses.replace(cfg.agent, kappa=math.inf, patience=0.0)
     variants = {'base': env.layout}
     k_map, k_eval = jax.random.split(key)
-    programs, shown = {}, {}
+    programs, drawers = {}, {}
 
     def point(trained: fit.Trained) -> dict:
         t0 = time.perf_counter()
@@ -183,7 +184,9 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
                                   own_rule=agent.rule is not None).steps
             programs[trained.method] = make_program(env, agent, agent_cfg, steps, device_mesh(), protocol.backend,
                                                     protocol.workers)
-            shown[trained.method] = [k for k in methods.get(trained.method).progress if k != 'phase']
+            drawers[trained.method] = curve_drawer(
+                trained.method, f'{env.name}: {label or trained.method}, {cfg.train.preset} preset, {{seeds}} seed(s)',
+                label)
         res = evaluate(env, agent, graph, agent_cfg, protocol, variants, k_eval, program=programs[trained.method],
                        progress=False)
         if protocol.workers and hasattr(programs[trained.method], 'close'):  # worker processes do not outlive a point
@@ -191,14 +194,26 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
         return {'eval/success': res.summary[res.agents[0]]['base']['mean'], 'eval/episodes': n * len(res.tasks),
                 'eval/seconds': time.perf_counter() - t0}
 
-    def draw(folders: list) -> None:
-        method = next(iter(shown))
-        for folder in folders:
-            plots.curves({label or method: [os.path.join(f, 'metrics.jsonl') for f in folders]}, shown[method],
-                         os.path.join(folder, 'curves.png'),
-                         title=f'{env.name}: {label or method}, {cfg.train.preset} preset, {len(folders)} seed(s)')
+    def draw(folders: list) -> None:  # a curve serves one method: its one drawer
+        next(iter(drawers.values()))(folders)
 
     return fit.Curve(point, draw)
+
+
+def curve_drawer(method: str, title: str, label: str = '') -> Callable[[list], None]:
+    """``draw(folders)``: ``curves.png`` of a run's seeds (the method's progress metrics, GAS's phase
+    flag aside, and its learning-curve points), drawn once and written into every folder; ``{seeds}`` in
+    ``title`` is the number of folders."""
+    keys = [k for k in methods.get(method).progress if k != 'phase']
+
+    def draw(folders: list) -> None:
+        first = os.path.join(folders[0], 'curves.png')
+        plots.curves({label or method: [os.path.join(f, 'metrics.jsonl') for f in folders]}, keys, first,
+                     title=title.replace('{seeds}', str(len(folders))))
+        for folder in folders[1:]:
+            shutil.copyfile(first, os.path.join(folder, 'curves.png'))
+
+    return draw
 
 
 def dataset_of(checkpoint: str, meta: dict) -> Optional[str]:
@@ -243,8 +258,6 @@ def export_checkpoint(checkpoint: str, out: str, dataset: Optional[str] = None, 
     so that the shipped folder builds the map the full data gives, without the data. ``data.json``
     keeps the training data's fingerprint (``config.json`` too, so a resume on the map states is
     refused). Returns ``data.json``'s record."""
-    import shutil  # pylint: disable=import-outside-toplevel
-
     env, _, cfg, path = prepare_evaluation(checkpoint, None, dataset, 'base', ())
     if fit.load(checkpoint, log=lambda *_: None).agent.mapper is not None:
         raise ValueError(f'{checkpoint}: {cfg.method} builds its map from whole trajectories; only a keypoint '

@@ -159,12 +159,11 @@ def cmd_train(a):
     print(f'dataset {a.dataset}: {len(data["terminals"])} states, {int(data["terminals"].sum())} trajectories')
     if cfg is not None:
         print(f'{method.name}, preset {cfg.preset}: {cfg.steps} updates of batch {cfg.batch_size}')
-    from aqm_mjx.evaluation import plots  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.assess import curve_drawer  # pylint: disable=import-outside-toplevel
 
     shown = fit.read_meta(a.out)[0] if a.resume and os.path.exists(os.path.join(a.out, 'config.json')) else method
-    losses = fit.Curve(lambda trained: {}, lambda folders: plots.curves(  # the losses at every checkpoint
-        {shown.name: [os.path.join(a.out, 'metrics.jsonl')]}, [k for k in shown.progress if k != 'phase'],
-        os.path.join(a.out, 'curves.png'), title=f'{shown.name} on {os.path.basename(a.dataset)}'))
+    losses = fit.Curve(lambda trained: {},  # the losses at every checkpoint, no evaluation
+                       curve_drawer(shown.name, f'{shown.name} on {os.path.basename(a.dataset)}'))
     fit.train(method, cfg, data, a.out, resume=a.resume, steps=a.steps, dataset_path=os.path.abspath(a.dataset),
               curve=losses)
     print(f'wrote {a.out} (config.json, metrics.jsonl, checkpoints/, curves.png)')
