@@ -444,7 +444,7 @@ def test_parity_benchmark_skips_and_says_why_without_a_reference_copy(tmp_path, 
     import importlib.util  # pylint: disable=import-outside-toplevel
 
     spec = importlib.util.spec_from_file_location('bench_parity', os.path.join(os.path.dirname(__file__), '..',
-                                                                               'benchmarks', 'bench_parity.py'))
+                                                                               'benchmarks', 'parity', 'bench_parity.py'))
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     monkeypatch.delenv('AQM_OGBENCH_REF', raising=False)

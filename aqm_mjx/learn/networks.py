@@ -6,7 +6,7 @@ ensembles by ``nn.vmap``, a Gaussian actor with a constant unit std whose mean l
 
 Attribute names follow OGBench's modules (``actor_net``, ``mean_net``, ``value_net``, ``phi``,
 ``psi``), so a parameter tree maps onto the reference agents' by renaming its top-level keys
-(``benchmarks/bench_parity.py``).
+(``benchmarks/parity/bench_parity.py``).
 """
 
 from __future__ import annotations

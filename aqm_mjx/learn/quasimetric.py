@@ -26,7 +26,7 @@ def interval_union_length(x: jax.Array, y: jax.Array) -> jax.Array:
     its start and past the furthest end of every interval before it (earlier start, or the same
     start and a lower index), ``relu(hi_i - max(x_i, max_{j before i} hi_j))``. That is M^2
     comparisons per component instead of a sort of 2M endpoints: on XLA's CPU the sort was 7x
-    slower for OGBench's components of 8 (``benchmarks/bench_iqe.py``). An empty interval
+    slower for OGBench's components of 8 (``benchmarks/throughput/bench_iqe.py``). An empty interval
     (``y_j <= x_j``) ends at its start, so it adds nothing and never covers a later start.
     """
     if x.shape[-1] == 1:  # one interval: its length (the paper's 512 x 1 latent takes this path)

@@ -1,8 +1,8 @@
 """Every stage's throughput in one table, each against the alternative measured in the same run.
 
-    python benchmarks/run_all.py                      # CPU scale: about 3.5 minutes on 2 cores
-    python benchmarks/run_all.py --scale gpu          # accelerator batches
-    python benchmarks/run_all.py --out benchmarks/results/all_cpu.json
+    python benchmarks/throughput/run_all.py                      # CPU scale: about 3.5 minutes on 2 cores
+    python benchmarks/throughput/run_all.py --scale gpu          # accelerator batches
+    python benchmarks/throughput/run_all.py --out benchmarks/results/all_cpu.json
 
 Rows (compile time is printed apart from run time; rates are from a second, timed call):
 
@@ -26,6 +26,8 @@ The per-stage scripts (``bench_collect.py``, ``bench_train.py``, ``bench_graph.p
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
 
 import jax
@@ -37,7 +39,8 @@ import bench_collect
 import bench_evaluate
 import bench_graph
 import bench_train
-from _report import finish
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 SCALES = {
     'cpu': dict(collect_batch=64, collect_steps=101, train_presets=('cpu',), iwe_n=100_000, fw_k=64, fw_b=256,

@@ -2,7 +2,7 @@
 
     aqm-mjx evaluate --checkpoint A --checkpoint B ... --shift closures --episodes 20 \
         --ablations no-pruning paper=1 paper=cal --backend ogbench --out OUT
-    python benchmarks/closure_table.py OUT [--rows aqm no-pruning paper=1 paper=cal]
+    python benchmarks/experiments/closure_table.py OUT [--rows aqm no-pruning paper=1 paper=cal]
 
 Per model (checkpoint) and row: success on the unchanged maze and on the mean of the closed
 corridors (95% Wilson intervals over the pooled episodes), the closure gain over no pruning, and
@@ -21,7 +21,7 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from aqm_mjx.evaluation import stats  # noqa: E402  (run as a script from the repository)
 
 DRAWS = 10_000

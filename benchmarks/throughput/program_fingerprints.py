@@ -1,13 +1,13 @@
 """Fingerprints of every method's training program, to tell a refactor that changes nothing from one
 that changes the computation: run it at two commits and compare the hashes.
 
-    python benchmarks/program_fingerprints.py                         # this checkout
-    git worktree add /tmp/old REV && (cd /tmp/old && PYTHONPATH=. python benchmarks/program_fingerprints.py)
+    python benchmarks/throughput/program_fingerprints.py                         # this checkout
+    git worktree add /tmp/old REV && (cd /tmp/old && PYTHONPATH=. python benchmarks/throughput/program_fingerprints.py)
 
 Per method: the StableHLO of one jitted training chunk (5 updates at the ``cpu`` preset's shapes,
 antmaze's 29-d observations and 8-d actions, a random dataset of 20,000 states), printed without
 source locations, and its SHA-256. Equal hashes mean the same program, so the same updates/s and
-the same numbers; ``benchmarks/bench_train.py`` then has nothing to measure. Lowering only: no
+the same numbers; ``benchmarks/throughput/bench_train.py`` then has nothing to measure. Lowering only: no
 compilation, about a minute on a 2-core CPU.
 """
 
@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
 import re
+import sys
 
 import jax
 import numpy as np
@@ -23,7 +25,8 @@ import numpy as np
 from aqm_mjx.data import dataset as dsm
 from aqm_mjx.learn import fit, methods
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def program_text(name: str, ds, updates: int = 5) -> str:

@@ -5,9 +5,9 @@ settled on the floor), never a standing one. Compile time is printed apart from 
 jitted step is called twice before timing (the second call is where a weakly typed field would
 recompile; see the 'timing trap').
 
-    python benchmarks/bench_env.py                      # CPU defaults: batches 1, 64, 256
-    python benchmarks/bench_env.py --batches 1 64 256 1024 4096 --iters 20   # on a GPU
-    python benchmarks/bench_env.py --iterations 1 --ls-iterations 4          # Brax-style solver
+    python benchmarks/throughput/bench_env.py                      # CPU defaults: batches 1, 64, 256
+    python benchmarks/throughput/bench_env.py --batches 1 64 256 1024 4096 --iters 20   # on a GPU
+    python benchmarks/throughput/bench_env.py --iterations 1 --ls-iterations 4          # Brax-style solver
 
 Rows: 'ant alone' is OGBench's ant on an empty floor (no wall geoms at all); 'medium', 'large',
 'giant' are our environments (3 wall proxies + contact caps, the grid as data). 'mujoco 1 thread'

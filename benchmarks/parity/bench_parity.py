@@ -2,9 +2,9 @@
 ``seohongpark/ogbench``'s ``impls/agents``, and our SAW against ``johnlyzhou/saw``'s
 (``impls/agents/saw.py``, a fork of OGBench's ``impls``), on the same parameters and the same batch.
 
-    python benchmarks/bench_parity.py --reference /path/to/ogbench    # a checkout, or a bare git copy
-    python benchmarks/bench_parity.py --reference OGBENCH --saw-reference /path/to/saw --methods gcivl saw
-    python benchmarks/bench_parity.py                                 # no copy given: says so and skips
+    python benchmarks/parity/bench_parity.py --reference /path/to/ogbench    # a checkout, or a bare git copy
+    python benchmarks/parity/bench_parity.py --reference OGBENCH --saw-reference /path/to/saw --methods gcivl saw
+    python benchmarks/parity/bench_parity.py                                 # no copy given: says so and skips
 
 For each method the reference agent is built with OGBench's ``create`` (its config from
 ``get_config`` with small widths and the settings ours uses), our parameters are written into its
@@ -186,7 +186,8 @@ def check_update(i: int, ref: dict, mine: dict, tol: float, rows: list, prefix: 
 def verdict(ok: bool, control_agreed: bool, a, rows: list, updates: str, control: str) -> int:
     """The closing line (``a``: the parsed ``--loss-tol``, ``--param-tol``, ``--out``), the machine
     line and the exit status: 0 when parity holds and the control disagrees."""
-    from _report import finish  # noqa: PLC0415 (benchmarks/ on sys.path when a script runs)
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+    from _report import finish  # noqa: PLC0415
 
     print(f'parity: {"PASS" if ok else "FAIL"} (losses and gradients within {a.loss_tol:g}, parameters within '
           f'{a.param_tol:g} after {updates}); control ({control}): '

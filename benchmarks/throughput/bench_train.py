@@ -1,9 +1,9 @@
 """Training updates/s of every registered method at the ``cpu`` and ``paper`` shapes, compile time
 apart, and seeds vmapped against one seed, in one run.
 
-    python benchmarks/bench_train.py                                   # CPU: every method, 25-35 min on 2 cores
-    python benchmarks/bench_train.py --methods aqm hiql --presets cpu  # some of them
-    python benchmarks/bench_train.py --presets paper --calls 5         # on a GPU
+    python benchmarks/throughput/bench_train.py                                   # CPU: every method, 25-35 min on 2 cores
+    python benchmarks/throughput/bench_train.py --methods aqm hiql --presets cpu  # some of them
+    python benchmarks/throughput/bench_train.py --presets paper --calls 5         # on a GPU
 
 Each row builds a method's learner for antmaze (29-d observations, 8-d actions) on a random dataset
 of 100K states in 100 trajectories, runs one jitted chunk of ``updates_per_call`` updates (compile +
@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 import time
 
 import jax
@@ -27,7 +29,8 @@ import numpy as np
 from aqm_mjx.data import dataset as dsm
 from aqm_mjx.learn import fit, methods
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def _dataset():

@@ -1,8 +1,8 @@
 """IQE's interval-union length, the sweep (the package's) against the sort of 2M endpoints (the
 reference), and QRL's training updates/s with each, in one run.
 
-    python benchmarks/bench_iqe.py                       # CPU: about 7 min on 2 cores
-    python benchmarks/bench_iqe.py --presets cpu --calls 5
+    python benchmarks/throughput/bench_iqe.py                       # CPU: about 7 min on 2 cores
+    python benchmarks/throughput/bench_iqe.py --presets cpu --calls 5
 
 Part 1 times ``value_and_grad`` of the summed lengths for latents of OGBench's QRL (64 components of
 8) at the ``cpu`` and ``paper`` batches (256, 1024), compile apart from the mean of ``--calls`` runs,
@@ -17,6 +17,8 @@ AQM's own IQE (components of 1) takes neither path; it is one ``relu``.
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
 
 import jax
@@ -25,7 +27,8 @@ import numpy as np
 
 from aqm_mjx.learn import quasimetric as qm
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 from bench_train import rate
 
 

@@ -1,8 +1,8 @@
 """AQM against its ablations on our own datasets, at CPU scale (RESULTS.md's main table).
 
-    python benchmarks/bench_ablations.py                                   # medium navigate only
-    python benchmarks/bench_ablations.py --cases medium-navigate medium-stitch large-navigate
-    python benchmarks/bench_ablations.py --data-dir runs/antmaze-medium/data   # reuse collected files
+    python benchmarks/experiments/bench_ablations.py                                   # medium navigate only
+    python benchmarks/experiments/bench_ablations.py --cases medium-navigate medium-stitch large-navigate
+    python benchmarks/experiments/bench_ablations.py --data-dir runs/antmaze-medium/data   # reuse collected files
 
 For every case MAZE-STYLE:
 1. data: collected in MJX into ``OUT/data/antmaze-MAZE-STYLE.npz`` (navigate: ``--episodes`` x 1001
@@ -28,6 +28,7 @@ import argparse
 import dataclasses
 import json
 import os
+import sys
 import time
 
 import jax
@@ -40,7 +41,8 @@ from aqm_mjx.learn import fit, methods
 from aqm_mjx.mapping import build
 from aqm_mjx.mapping import graph as graphs
 
-from _report import finish
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 OBJECTIVES = ('saw', 'awr', 'bc')
 METHOD = {'saw': 'aqm', 'awr': 'aqm-awr', 'bc': 'aqm-bc'}  # registry entries of the objectives

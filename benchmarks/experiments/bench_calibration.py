@@ -1,6 +1,6 @@
 """How stable the calibrated budgets are: the calibration pass of one checkpoint on several keys.
 
-    python benchmarks/bench_calibration.py --checkpoint runs/antmaze-medium/train --keys 5 \
+    python benchmarks/experiments/bench_calibration.py --checkpoint runs/antmaze-medium/train --keys 5 \
         --episodes 20 100 200 --false-alarm 0.005 0.01 0.02 --set protocol.backend=ogbench
 
 For each number of calibration episodes and each of ``--keys`` keys (the calibration key of
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 
@@ -30,7 +31,8 @@ from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import stage_keys
 from aqm_mjx.assess import prepare_evaluation, read_data
 
-from _report import finish  # benchmarks/_report.py
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def main():

@@ -1,7 +1,7 @@
 """Random-action MJX rollouts of a maze environment and a picture of them: the environments alone,
 no agent (a quick look that the physics and the rendering work on this machine).
 
-    python benchmarks/demo_rollouts.py --env antmaze-medium --envs 16 --steps 100 --out runs/rollouts
+    python benchmarks/experiments/demo_rollouts.py --env antmaze-medium --envs 16 --steps 100 --out runs/rollouts
 
 Writes OUT/ENV_rollouts.png and OUT/summary.json (reset and first-chunk times with compilation, then
 control steps per second). bench_env.py measures throughput against plain MuJoCo.

@@ -1,7 +1,7 @@
 """GAS's node construction against its public reference, on the same embeddings.
 
     git clone https://github.com/qortmdgh4141/GAS /tmp/GAS        # or any checkout of it
-    python benchmarks/bench_parity_gas.py --reference /tmp/GAS
+    python benchmarks/parity/bench_parity_gas.py --reference /tmp/GAS
 
 The reference's own ``K_utils/keynodes_utils.py`` (temporal-efficiency filtering, TD-aware
 clustering) and ``K_utils/keygraph_utils.py`` (edges within ``way_steps``, components joined by
@@ -28,7 +28,8 @@ import numpy as np
 
 from aqm_mjx.mapping import gas_nodes
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 CASES = ((10, 0.5), (25, 0.0), (5, 0.9), (50, 0.7))
 

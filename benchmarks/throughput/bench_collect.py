@@ -1,7 +1,7 @@
 """Dataset collection throughput in MJX (transitions/s) against OGBench's own collection loop.
 
-    python benchmarks/bench_collect.py                        # CPU: about 12 minutes
-    python benchmarks/bench_collect.py --batches 1024 4096 --dataset-episodes 1000   # on a GPU
+    python benchmarks/throughput/bench_collect.py                        # CPU: about 12 minutes
+    python benchmarks/throughput/bench_collect.py --batches 1024 4096 --dataset-episodes 1000   # on a GPU
 
 Rows 'mjx batch B': ``B`` navigate episodes of ``--steps`` states in antmaze-medium with the
 scripted trot, one jitted call (``vmap`` over episodes, ``lax.scan`` over time). The first call
@@ -16,6 +16,8 @@ Row 'navigate 100K': :func:`aqm_mjx.data.collect.collect` end to end for ``--dat
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
 
 import jax
@@ -24,7 +26,8 @@ import numpy as np
 from aqm_mjx import envs
 from aqm_mjx.data import collect
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def mjx_rate(env_name, batch, steps, seed=0):

@@ -1,7 +1,7 @@
 """Why closed-corridor episodes fail: every episode of the AQM agent and of no pruning on the shift
 suite's closures, traced step by step in OGBench's environments, each failure put in one class.
 
-    python benchmarks/diagnose_closures.py --checkpoint runs/antmaze-medium/train --episodes 10 \
+    python benchmarks/experiments/diagnose_closures.py --checkpoint runs/antmaze-medium/train --episodes 10 \
         --split dev --out /tmp/diag
 
 For one checkpoint: the map and the calibration pass as ``aqm-mjx evaluate`` makes them (the run
@@ -29,6 +29,7 @@ import argparse
 import dataclasses
 import json
 import os
+import sys
 import time
 
 import jax
@@ -45,7 +46,8 @@ from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import stage_keys
 from aqm_mjx.assess import prepare_evaluation, read_data
 
-from _report import finish  # benchmarks/_report.py
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 CLASSES = ('success', 'no cut', 'stuck at the closure', 'back to the closure', 'failed on the detour')
 

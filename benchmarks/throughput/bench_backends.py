@@ -1,6 +1,6 @@
 """The two backends on the same episodes: speed and agreement.
 
-    python benchmarks/bench_backends.py --checkpoint RUN/train --episodes 50 --out benchmarks/results/backends_cpu.json
+    python benchmarks/throughput/bench_backends.py --checkpoint RUN/train --episodes 50 --out benchmarks/results/backends_cpu.json
 
 One checkpoint, one map (``stage_keys(PRNGKey(--seed))``, as ``aqm-mjx evaluate``) and one episode
 table (AQM, no pruning and the flat policy x every task x ``--episodes``, the same episode keys)
@@ -27,6 +27,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
+import sys
 import time
 
 import jax
@@ -41,7 +43,8 @@ from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import stage_keys
 from aqm_mjx.assess import prepare_evaluation, read_data
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 from bench_evaluate import ogbench_loop_rate
 
 

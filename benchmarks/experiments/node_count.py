@@ -1,7 +1,7 @@
 """Success against map size, with the planning cost at each size: the paper's Table 2 and Figure 2
 (AQM's sparse quasimetric graph against GAS's dense one).
 
-    python benchmarks/node_count.py --aqm RUN_AQM --gas RUN_GAS --deltas 4 8 16 --gas-h 2 4 8 \\
+    python benchmarks/experiments/node_count.py --aqm RUN_AQM --gas RUN_GAS --deltas 4 8 16 --gas-h 2 4 8 \\
         --episodes 10 --split dev --out benchmarks/results/node_count_medium
 
 For a trained AQM run and a trained GAS run (each ``aqm-mjx train`` folders on the same data), every
@@ -28,6 +28,7 @@ import argparse
 import dataclasses
 import json
 import os
+import sys
 import time
 
 import jax
@@ -42,7 +43,8 @@ from aqm_mjx.learn import fit, methods
 from aqm_mjx.mapping import build
 from aqm_mjx.pipeline import stage_keys
 
-from _report import finish
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def state_bytes(agent, cfg, graph, obs_size: int) -> tuple[int, int]:

@@ -1,7 +1,7 @@
 """Evaluation throughput: the full AQM agent against physics alone, and against an OGBench-style loop.
 
-    python benchmarks/bench_evaluate.py                              # CPU: about 15 minutes
-    python benchmarks/bench_evaluate.py --batches 1024 4096 16384 65536 --steps 100   # on a GPU
+    python benchmarks/throughput/bench_evaluate.py                              # CPU: about 15 minutes
+    python benchmarks/throughput/bench_evaluate.py --batches 1024 4096 16384 65536 --steps 100   # on a GPU
 
 Rows, control steps/s summed over the batch (compile printed apart; the first call compiles and
 runs, the second, with new keys, is timed alone):
@@ -26,6 +26,8 @@ The ratio ``overhead`` is physics / agent at the same batch; ``vs_ogbench`` is a
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
 
 import jax
@@ -38,7 +40,8 @@ from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.learn import fit, methods
 from aqm_mjx.mapping import graph as graphs
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def timed_twice(fn, make_args):

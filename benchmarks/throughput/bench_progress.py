@@ -1,8 +1,8 @@
 """What the moving progress bar costs: the evaluation program with its host hook against the same
 program without it, on the same episodes, in one run.
 
-    python benchmarks/bench_progress.py                    # CPU: antmaze-medium, 64 envs x 500 steps, ~5 minutes
-    python benchmarks/bench_progress.py --batch 4096 --steps 1000      # on a GPU
+    python benchmarks/throughput/bench_progress.py                    # CPU: antmaze-medium, 64 envs x 500 steps, ~5 minutes
+    python benchmarks/throughput/bench_progress.py --batch 4096 --steps 1000      # on a GPU
 
 Both programs are :func:`aqm_mjx.agent.rollout.make_rollout` of the full AQM agent (``cpu``-preset
 shapes, random weights, as ``bench_evaluate.py``); one is built with ``progress=`` a
@@ -15,6 +15,8 @@ The final positions of both are checked equal (the hook changes nothing).
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
 
 import jax
@@ -25,7 +27,8 @@ from aqm_mjx.agent import rollout
 from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.progress import ChunkBar
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 from bench_evaluate import make_agent
 
 

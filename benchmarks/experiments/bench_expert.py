@@ -1,7 +1,7 @@
 """The scripted ant expert re-measured in MJX: flat-ground speed and flips, then waypoint following.
 
-    python benchmarks/bench_expert.py                       # CPU: about 10 minutes
-    python benchmarks/bench_expert.py --mazes medium --episodes 4 --flat-dirs 8   # quick look
+    python benchmarks/experiments/bench_expert.py                       # CPU: about 10 minutes
+    python benchmarks/experiments/bench_expert.py --mazes medium --episodes 4 --flat-dirs 8   # quick look
 
 Flat ground: ``--flat-dirs`` commanded directions x 200 control steps from OGBench's reset, random
 start phase, at action noise 0, 0.2 and 0.5: mean speed along the command, slowest episode, flips

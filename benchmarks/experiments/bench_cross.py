@@ -1,7 +1,7 @@
 """The training-layout half of the paper's Figure 3: one model per training layout, every
 model on every layout, as a cross heatmap (rows: training layout, columns: evaluation layout).
 
-    python benchmarks/bench_cross.py --env antmaze-medium --layouts base close-3-3 close-6-2 \
+    python benchmarks/experiments/bench_cross.py --env antmaze-medium --layouts base close-3-3 close-6-2 \
         --seeds 1 --episodes 10 --out /tmp/cross
 
 For every training layout ``L`` (``base`` or a variant of :mod:`aqm_mjx.envs.shifts`):
@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import sys
 import time
 
 import jax
@@ -40,7 +41,8 @@ from aqm_mjx.pipeline import RunConfig, stage_keys
 from aqm_mjx.assess import read_data
 from aqm_mjx.run import data_stage
 
-from _report import finish  # benchmarks/ (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 from bench_budgets import one_seed
 
 PICTURED = ('fixed, calibrated kappa', 'no pruning')  # the heatmap's rules

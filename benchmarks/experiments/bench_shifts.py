@@ -1,7 +1,7 @@
 """The shift suite without learning: replanning across every test-time layout of a maze.
 
-    python benchmarks/bench_shifts.py                        # CPU: antmaze-medium, 2 episodes, ~10 minutes
-    python benchmarks/bench_shifts.py --episodes 50 --envs 4096   # on a GPU: the full protocol
+    python benchmarks/experiments/bench_shifts.py                        # CPU: antmaze-medium, 2 episodes, ~10 minutes
+    python benchmarks/experiments/bench_shifts.py --episodes 50 --envs 4096   # on a GPU: the full protocol
 
 The quasimetric is the exact maze distance of the *training* layout (``oracle.maze_graph``, IWE at
 ``--delta`` m, a time-to-reach at 0.12 m per control step); the controller is the scripted trot
@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 import numpy as np
 
@@ -28,7 +29,8 @@ from aqm_mjx.evaluation import evaluate, plots, report
 from aqm_mjx.evaluation.protocol import ProtocolConfig
 from aqm_mjx.mapping import graph as graphs
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 SPEED = 0.12  # m per control step of the scripted trot at noise 0 (about 1.2 m/s)
 

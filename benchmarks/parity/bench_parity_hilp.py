@@ -2,7 +2,7 @@
 on the same parameters and the same batches.
 
     git clone https://github.com/seohongpark/HILP /tmp/HILP           # or any checkout of it
-    python benchmarks/bench_parity_hilp.py --reference /tmp/HILP
+    python benchmarks/parity/bench_parity_hilp.py --reference /tmp/HILP
 
 The reference agent is built with its own ``create_learner`` (widths 3 x 32, latent 8, its other
 settings as ours), our parameters are written into its tree (module by module; every shape is

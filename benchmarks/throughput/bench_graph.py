@@ -1,7 +1,7 @@
 """Floyd-Warshall throughput against SciPy, and IWE time on large candidate sets, in one run.
 
-    python benchmarks/bench_graph.py                    # CPU defaults
-    python benchmarks/bench_graph.py --batches 1 16 256 1024 4096 --iwe-sizes 100000 1000000
+    python benchmarks/throughput/bench_graph.py                    # CPU defaults
+    python benchmarks/throughput/bench_graph.py --batches 1 16 256 1024 4096 --iwe-sizes 100000 1000000
 
 Floyd-Warshall: ``jit(plan.floyd_warshall_batch)`` on B random directed graphs of K nodes with
 infinite entries, against ``scipy.sparse.csgraph.floyd_warshall`` called once per graph on the

@@ -1,7 +1,7 @@
 """Does a learned policy go where its goal is? The open-arena direction test.
 
-    python benchmarks/bench_direction.py --checkpoint runs/antmaze-medium/train
-    python benchmarks/bench_direction.py --checkpoint RUN --policy target
+    python benchmarks/experiments/bench_direction.py --checkpoint runs/antmaze-medium/train
+    python benchmarks/experiments/bench_direction.py --checkpoint RUN --policy target
 
 16 ants start at the centre of ``antmaze-arena`` (no inner walls) with goals 8 m away in 16
 directions, and walk ``--steps`` control steps under the policy's mean action (clipped to [-1, 1])
@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -22,7 +24,8 @@ import numpy as np
 from aqm_mjx import envs
 from aqm_mjx.learn import fit
 
-from _report import finish
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def direction_test(trained, which: str, n: int = 16, steps: int = 100, radius: float = 8.0, seed: int = 0) -> dict:

@@ -1,6 +1,6 @@
 """Budgets in the learned controller's own time: calibrate, then compare the rules.
 
-    python benchmarks/bench_budgets.py --checkpoint RUN/train/aqm/seed_0 --checkpoint RUN/train/aqm/seed_1 \
+    python benchmarks/experiments/bench_budgets.py --checkpoint RUN/train/aqm/seed_0 --checkpoint RUN/train/aqm/seed_1 \
         --episodes 20 --out benchmarks/results/budgets_cpu
 
 For every checkpoint (a seed), with one map (``stage_keys(PRNGKey(--seed))``, as ``aqm-mjx evaluate``):
@@ -54,7 +54,8 @@ from aqm_mjx.mapping.build import trimmed_map
 from aqm_mjx.pipeline import stage_keys
 from aqm_mjx.assess import prepare_evaluation, read_data
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def cell(success, pruned, removed) -> dict:

@@ -2,7 +2,7 @@
 on the same parameters and batches: both phases, the TDR's and the skill policy's.
 
     git clone https://github.com/qortmdgh4141/GAS /tmp/GAS             # or any checkout of it
-    python benchmarks/bench_parity_gas_agent.py --reference /tmp/GAS
+    python benchmarks/parity/bench_parity_gas_agent.py --reference /tmp/GAS
 
 The reference agent is built with its own ``GASAgent.create`` (widths 2 x 32, TDR 8-d, its other
 settings as ours), our parameters and targets are written into its tree (every shape checked). For

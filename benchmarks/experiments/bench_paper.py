@@ -1,8 +1,8 @@
 """AQM at the paper's scale: one command for a GPU.
 
-    python benchmarks/bench_paper.py --out runs/paper                 # all six cases, 4 seeds each
-    python benchmarks/bench_paper.py --cases medium-navigate --seeds 2 --out runs/paper
-    python benchmarks/bench_paper.py --cases medium-navigate large-navigate --seeds 2 \
+    python benchmarks/experiments/bench_paper.py --out runs/paper                 # all six cases, 4 seeds each
+    python benchmarks/experiments/bench_paper.py --cases medium-navigate --seeds 2 --out runs/paper
+    python benchmarks/experiments/bench_paper.py --cases medium-navigate large-navigate --seeds 2 \
         --methods aqm gcbc gcivl gciql qrl crl hiql saw --out runs/paper-baselines   # the baselines at the paper preset
 
 For every case ``MAZE-STYLE`` (antmaze medium / large / giant, navigate / stitch):
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 import jax
@@ -31,7 +32,8 @@ import jax
 from aqm_mjx import compare, envs, files
 from aqm_mjx.data import collect
 
-from _report import finish  # benchmarks/ (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 CASES = tuple(f'{m}-{s}' for m in ('medium', 'large', 'giant') for s in ('navigate', 'stitch'))
 

@@ -1,7 +1,7 @@
 """``kill -9`` at random moments of ``aqm-mjx train``, each followed by a resume: does the run
 always end bit-identical to one that was never interrupted?
 
-    python benchmarks/bench_kill_resume.py [--kills 10] [--steps 3000] [--seed 0] [--out DIR]
+    python benchmarks/experiments/bench_kill_resume.py [--kills 10] [--steps 3000] [--seed 0] [--out DIR]
 
 A reference run trains uninterrupted. A second run in another folder is started, killed with
 SIGKILL after a random delay (anywhere from start-up and compilation to the middle of a checkpoint

@@ -1,7 +1,7 @@
 """The whole run as one program: N seeds in one vmapped call against N sequential calls.
 
-    python benchmarks/bench_pipeline.py                         # CPU: a few minutes
-    python benchmarks/bench_pipeline.py --env antmaze-medium --seeds 8 --updates 2000   # on a GPU
+    python benchmarks/throughput/bench_pipeline.py                         # CPU: a few minutes
+    python benchmarks/throughput/bench_pipeline.py --env antmaze-medium --seeds 8 --updates 2000   # on a GPU
 
 A small run (``tiny`` training preset, ``--updates`` updates; IWE on the dataset; 2 agents x 2 tasks x
 ``--episodes`` episodes of ``--steps`` control steps) on random point walks in pointmaze-medium
@@ -13,6 +13,8 @@ Compile time is printed apart (``lower().compile()``); run times exclude it.
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
 
 import jax
@@ -21,7 +23,8 @@ from aqm_mjx import envs, pipeline
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import synthetic
 
-from _report import finish  # benchmarks/_report.py (the script's folder is on sys.path)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
 
 
 def timed(compiled, *args):
