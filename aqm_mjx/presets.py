@@ -24,7 +24,7 @@ LOOP = {
     'paper': dict(steps=1_000_000, batch_size=1024, updates_per_call=1000, log_every=5000, checkpoint_every=50_000),
     # a few minutes on a 2-core CPU: 50x fewer updates, a quarter of the batch
     'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
-    # cpu for 2.5x the updates (antmaze-large in about an hour on a 2-core CPU, RESULTS.md)
+    # cpu for 2.5x the updates (antmaze-large in 1-1.5 h on a 2-core CPU, RESULTS.md section 2.1)
     'cpu-long': dict(steps=50_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
     # tests and notebooks: seconds on a CPU
     'ci': dict(steps=200, batch_size=64, updates_per_call=50, log_every=50, checkpoint_every=100),
@@ -38,7 +38,7 @@ RUN = {
                agent=dict(kappa=0.0, switch_radius=0.6),
                protocol=dict(episodes=2, horizon=60, envs=64, calibration_episodes=20),
                collect_episodes=4),
-    # map and agent values measured at this scale (RESULTS.md sections 3-4); the AQM row on the stall rule
+    # map and agent values measured at this scale (RESULTS.md section 3.4); the AQM row on the stall rule
     # with parallel cuts 0.6 (the paper's single cut: cut_slack=0), its patience 6 x the calibration
     # pass's 90th percentile of the longest stall: stable across calibration keys where the 0.5% quantile
     # was not, and the larger closure gain on four models' development episodes
@@ -50,7 +50,7 @@ RUN = {
                 protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2,
                               curve_backend='ogbench')),
     # antmaze-large navigate with 2 seeds in about an hour on a 2-core CPU: 4x the data, 2.5x the updates;
-    # the paper's single cut (parallel cuts were not measured on antmaze-large: RESULTS.md section 13)
+    # the paper's single cut (parallel cuts were not measured on antmaze-large: RESULTS.md section 2.1)
     'cpu-long': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
                      protocol=dict(episodes=20, envs=64, calibrate='stall', curve_episodes=2,
                                    curve_backend='ogbench'),

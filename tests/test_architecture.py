@@ -171,3 +171,31 @@ def test_readme_is_a_front_page():
     for target in re.findall(r'\]\(([^)#]+)(?:#[^)]*)?\)', readme):
         if not target.startswith('http'):
             assert (top / target).exists(), target
+
+
+def test_benchmarks_are_filed_and_results_cites_every_artefact():
+    """benchmarks/ holds its scripts in throughput/, experiments/ and parity/, each listed in its
+    README; every benchmarks/ path the docs name exists, and every artefact in benchmarks/results is
+    cited by RESULTS.md (results hold only what the report cites)."""
+    import re  # pylint: disable=import-outside-toplevel
+
+    top = ROOT.parent
+    bench = top / 'benchmarks'
+    assert sorted(p.name for p in bench.glob('*.py')) == ['_report.py']
+    listing = (bench / 'README.md').read_text()
+    scripts = sorted(p for folder in ('throughput', 'experiments', 'parity') for p in (bench / folder).glob('*.py'))
+    assert len(scripts) >= 25
+    for p in scripts:
+        assert f'`{p.name}`' in listing, f'{p.relative_to(top)} is not in benchmarks/README.md'
+    docs = {name: (top / name).read_text() for name in ('README.md', 'GUIDE.md', 'RESULTS.md')}
+    for name, text in docs.items():
+        for cited in re.findall(r'benchmarks/[A-Za-z0-9_./-]*[A-Za-z0-9_/]', text):
+            assert (top / cited).exists(), f'{name} names {cited}, which does not exist'
+        for target in re.findall(r'\]\(([^)#]+)(?:#[^)]*)?\)', text):
+            if not target.startswith('http'):
+                assert (top / target).exists(), f'{name} links {target}'
+    results = docs['RESULTS.md']
+    for entry in sorted((bench / 'results').iterdir()):
+        stem = entry.name if entry.is_dir() else entry.name.split('.')[0]
+        assert f'benchmarks/results/{stem}' in results, f'benchmarks/results/{entry.name} is not cited by RESULTS.md'
+    assert not re.findall(r'\bissues? \d+', results, re.I) and 'session' not in results.lower()

@@ -37,7 +37,7 @@ cut logs, keep_route) sit in blocks marked EXTENSION.
   * w(i, j)`` of z_i and ends within that of z_j (map distances, either way). The overrun says z_j's
   side cannot be reached from z_i's in the leg's time: edges between the same two neighbourhoods
   cross the same blockage. Without them a closed corridor crossed by k such edges costs k overruns,
-  one budget each (RESULTS.md, section 9).
+  one budget each (RESULTS.md, section 3.4).
 - Leg log: every budgeted leg that ends at its keypoint is recorded as (d(from, to), steps taken,
   longest stall, kind) in ``legs`` (the first :data:`MAX_LEGS`; ``n_legs`` counts all), the measurement
   that calibrates either rule (:mod:`aqm_mjx.evaluation.calibration`).
@@ -75,7 +75,7 @@ class AgentConfig:
     kappa: float = option(presets.default('agent', 'kappa'),
                           'budget slack: B = (1 + kappa) d(z_i, z_j); inf disables pruning. 1 at the cpu preset, not '
                           "the paper's small slack: the learned policy walks slower than the data's expert that d "
-                          'measures (RESULTS.md, kappa sweep)')
+                          'measures (RESULTS.md, section 3.4)')
     switch_radius: float = option(presets.default('agent', 'switch_radius'),
                                   'a keypoint counts as reached when d(s, z) <= switch_radius (RESULTS.md)')
     patience: float = option(0.0, "0: the paper's budget (1 + kappa) d; > 0: the stall rule, a leg is cut after this "
@@ -84,7 +84,7 @@ class AgentConfig:
                              'on the leg (units of d: control steps)')
     cut_slack: float = option(0.0, "the AQM row's parallel cuts. 0: an overrun cuts its one edge (the paper); in "
                               '(0, 1): it also cuts the edges parallel to it, those whose ends lie within cut_slack '
-                              'times the leg of its ends (RESULTS.md, section 9)')
+                              'times the leg of its ends (RESULTS.md, section 3.4)')
     cut_into: bool = option(False, "with parallel cuts: an overrun of z_i -> z_j cuts every edge into z_j's "
                             "neighbourhood, from anywhere, not only from z_i's (its keypoints are taken as unreachable)")
     keep_route: bool = option(False, 'an overrun whose cut would leave no route to the goal is not cut: the leg '

@@ -15,7 +15,7 @@ rate ``q``:
   ``patience = C quantile_0.9(longest stall)``: a multiple of how long the controller typically
   stalls, the way the paper's budget is a multiple of d. The tail quantile moves by about 100%
   across calibration keys (long stalls come in bunches from a few episodes); the 90th percentile
-  by about 20% (RESULTS.md, the calibration's spread).
+  by about 20% (RESULTS.md, section 3.2).
 
 so that a fraction ``q`` of the traversable legs seen would have been cut (with a stall scale, the
 rate follows from ``C`` instead). Legs the agent never

@@ -133,7 +133,7 @@ SIZES = {
     'paper': dict(q_hidden=(512, 512, 512), n_components=512, component_size=1, pi_hidden=(512, 512, 512),
                   conditioning='goal'),
     # cpu: 50x fewer updates than the paper, so the quasimetric learns 3x faster (at 1e-4 its map of
-    # antmaze-medium still joined keypoints across walls after 20,000 updates; RESULTS.md)
+    # antmaze-medium still joined keypoints across walls after 20,000 updates; RESULTS.md section 3.4)
     'cpu': dict(q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
                 lr_quasimetric=3e-4),
     # cpu-long: the cpu networks for 2.5x the updates
