@@ -183,6 +183,17 @@ def check_update(i: int, ref: dict, mine: dict, tol: float, rows: list, prefix: 
     return diff <= tol
 
 
+def reference_parser(doc: str, repo: str) -> argparse.ArgumentParser:
+    """The options every single-reference parity script takes: ``--reference`` (a checkout of
+    ``repo``), the loss and parameter tolerances, and ``--out``."""
+    p = argparse.ArgumentParser(description=doc.split('\n')[0])
+    p.add_argument('--reference', required=True, help=f'a checkout of github.com/{repo}')
+    p.add_argument('--loss-tol', type=float, default=1e-5, help='largest relative difference of a loss')
+    p.add_argument('--param-tol', type=float, default=1e-6, help='largest absolute difference of a parameter')
+    p.add_argument('--out', default=None, help='write the rows as JSON here')
+    return p
+
+
 def verdict(ok: bool, control_agreed: bool, a, rows: list, updates: str, control: str) -> int:
     """The closing line (``a``: the parsed ``--loss-tol``, ``--param-tol``, ``--out``), the machine
     line and the exit status: 0 when parity holds and the control disagrees."""

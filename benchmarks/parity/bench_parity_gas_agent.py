@@ -23,7 +23,6 @@ Gaussian of ``bench_parity.py``. Exits 1 on a difference above ``--loss-tol`` (r
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -35,8 +34,8 @@ from aqm_mjx.data import goals
 from aqm_mjx.learn import methods
 from aqm_mjx.learn.baselines import gas
 
-from bench_parity import (_flat, _gaussian_standin, _set, check_gradients, check_losses, check_update, rel,
-                          verdict)
+from bench_parity import (_flat, _gaussian_standin, _set, check_gradients, check_losses, check_update,
+                          reference_parser, rel, verdict)
 
 HIDDEN, LATENT, OBS, ACT, B, W = (32, 32), 8, 29, 8, 64, 6
 REF_NAMES = {'tdr': 'tdr_value', 'value': 'value', 'critic': 'critic', 'actor': 'actor'}
@@ -138,12 +137,7 @@ def phase(name, ref, agent, learner, state, data, a, rows) -> bool:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    p.add_argument('--reference', required=True, help='a checkout of github.com/qortmdgh4141/GAS')
-    p.add_argument('--loss-tol', type=float, default=1e-5)
-    p.add_argument('--param-tol', type=float, default=1e-6)
-    p.add_argument('--out', default=None)
-    a = p.parse_args()
+    a = reference_parser(__doc__, 'qortmdgh4141/GAS').parse_args()
     ref = import_reference(a.reference)
     m = methods.get('gas')
     cfg = m.preset('ci', env='antmaze-medium', value_hidden=HIDDEN, actor_hidden=HIDDEN, latent=LATENT,

@@ -22,7 +22,6 @@ parameter tree (with flax 0.12 the two trees differ in type and its first update
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import types
@@ -34,8 +33,8 @@ import numpy as np
 from aqm_mjx.data import goals
 from aqm_mjx.learn import methods
 
-from bench_parity import (_flat, _gaussian_standin, _set, check_gradients, check_losses, check_update, rel,
-                          verdict)
+from bench_parity import (_flat, _gaussian_standin, _set, check_gradients, check_losses, check_update,
+                          reference_parser, rel, verdict)
 
 HIDDEN, LATENT, OBS, ACT, B = (32, 32, 32), 8, 29, 8, 64
 # our (module, first path part) -> the reference's module and the path before the layer names
@@ -111,12 +110,7 @@ def batches(key, n: int):
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    p.add_argument('--reference', required=True, help='a checkout of github.com/seohongpark/HILP')
-    p.add_argument('--loss-tol', type=float, default=1e-5)
-    p.add_argument('--param-tol', type=float, default=1e-6)
-    p.add_argument('--out', default=None)
-    a = p.parse_args()
+    a = reference_parser(__doc__, 'seohongpark/HILP').parse_args()
     ref = import_reference(a.reference)
     m = methods.get('hilp')
     cfg = m.preset('ci', env='antmaze-medium', value_hidden=HIDDEN, actor_hidden=HIDDEN, latent=LATENT)
