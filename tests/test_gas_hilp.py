@@ -300,3 +300,16 @@ def test_the_one_program_trains_maps_and_evaluates_gas_and_hilp(method):
     assert list(run.episodes.agents) == ['planner']
     out = jax.jit(run)(jax.random.PRNGKey(0), dsm.to_device(synthetic.point_walks(n_traj=20, t_len=60)))
     assert int(out['keypoints']) > 0 and out['episode_success'].shape == (2,) and int(out['pruned'].sum()) == 0
+
+
+def test_a_gas_config_saved_with_a_phase_share_reads_back_as_the_same_boundary_in_updates():
+    """Runs saved before the boundary was ``tdr_steps`` carry ``tdr_fraction``: the share of the
+    run's steps, rounded and kept inside (0, steps); anything else is an error that names it."""
+    d = gas.GASConfig.preset('cpu', env='antmaze-medium').to_dict()
+    d.pop('tdr_steps')
+    for frac, steps, want in [(0.5, 20_000, 10_000), (0.25, 1_500, 375), (1e-4, 1_000, 1), (0.9999, 1_000, 999)]:
+        assert gas.GASConfig.from_dict({**d, 'tdr_fraction': frac, 'steps': steps}).tdr_steps == want
+    with pytest.raises(ValueError, match='tdr_fraction must be in'):
+        gas.GASConfig.from_dict({**d, 'tdr_fraction': 1.5})
+    with pytest.raises(ValueError, match='unknown GASConfig field'):
+        gas.GASConfig.from_dict({**d, 'tdr_fraction': 0.5, 'tdr_steps': 3, 'bogus': 1})

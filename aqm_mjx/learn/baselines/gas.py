@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from aqm_mjx import config as cfg_lib
 from aqm_mjx.data import goals
 from aqm_mjx.interface import Agent, spec
 from aqm_mjx.learn import losses, networks, policy
@@ -68,6 +69,18 @@ class GASConfig(base.BaselineConfig):
     value_p_random: float = option(0.375, 'TDR goals: P(a random dataset state)')
 
     PRESET_OVERRIDES = {'ci': {'latent': 8, 'max_nodes': 256, 'waystep_window': 8}}
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        """A saved config; one written when the phase boundary was a share of the run
+        (``tdr_fraction``) reads back as the same boundary in updates (``tdr_steps``)."""
+        if isinstance(d, dict) and 'tdr_fraction' in d and 'tdr_steps' not in d:
+            d = dict(d)
+            frac, steps = d.pop('tdr_fraction'), d.get('steps', 0)
+            if not (isinstance(frac, (int, float)) and 0 < frac < 1 and isinstance(steps, int) and steps > 1):
+                raise ValueError(f'tdr_fraction must be in (0, 1) with steps > 1; got {frac!r} and steps {steps!r}')
+            d['tdr_steps'] = min(max(1, round(steps * frac)), steps - 1)
+        return cfg_lib.from_dict(cls, d)
 
     def __post_init__(self):
         super().__post_init__()
