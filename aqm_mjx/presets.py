@@ -26,6 +26,8 @@ LOOP = {
     'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
     # cpu for 2.5x the updates (antmaze-large in 1-1.5 h on a 2-core CPU, RESULTS.md section 2.1)
     'cpu-long': dict(steps=50_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
+    # cpu for 7.5x the updates: antmaze-giant navigate (RESULTS.md section 2.3)
+    'cpu-giant': dict(steps=150_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
     # tests and notebooks: seconds on a CPU
     'ci': dict(steps=200, batch_size=64, updates_per_call=50, log_every=50, checkpoint_every=100),
 }
@@ -55,6 +57,13 @@ RUN = {
                      protocol=dict(episodes=20, envs=64, calibrate='stall', curve_episodes=2,
                                    curve_backend='ogbench'),
                      collect_episodes=400),
+    # antmaze-giant navigate in under 2 h on a 2-core CPU (RESULTS.md section 2.3): 400 collected episodes of
+    # 2,001 states, 150,000 updates; a map that fits the giant maze (delta 12, 512 keypoint slots: about 190
+    # keypoints, where delta 8 overflows 256); cpu-long's rule (stall at the 0.5% quantile, single cut)
+    'cpu-giant': dict(map=dict(delta=12.0, max_keypoints=512), agent=dict(kappa=1.0, switch_radius=10.0),
+                      protocol=dict(episodes=10, envs=64, calibrate='stall', curve_episodes=2,
+                                    curve_backend='ogbench'),
+                      collect_episodes=400),
     # the paper's sizes (Appendix 10): delta 10 (its best in Figure 10, swept 10-25), OGBench's 50 episodes
     'paper': dict(map=dict(delta=10.0), agent=dict(kappa=0.25, switch_radius=5.0),
                   protocol=dict(episodes=50, envs=1024, curve_episodes=10)),

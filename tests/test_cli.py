@@ -102,6 +102,22 @@ def test_cpu_long_preset_scales_the_cpu_run_for_every_method():
     assert cli.collect_episodes_of(parser.parse_args(['run'])) == 100
 
 
+def test_cpu_giant_preset_is_cpu_long_with_more_updates_and_a_map_that_fits_the_giant_maze():
+    from aqm_mjx import cli, pipeline
+    from aqm_mjx.learn import methods
+
+    long, giant = (pipeline.RunConfig.preset(p, env='antmaze-giant') for p in ('cpu-long', 'cpu-giant'))
+    # the networks, batch and budget rule of cpu-long, 3x its updates, the measured map and 10 episodes a task
+    assert (giant.train.steps, giant.train.batch_size) == (150_000, 256) and giant.train.q_hidden == long.train.q_hidden
+    assert (giant.map.delta, giant.map.max_keypoints) == (12.0, 512) and giant.agent == long.agent
+    assert giant.protocol.calibrate == long.protocol.calibrate == 'stall' and giant.protocol.stall_scale == 0
+    assert giant.protocol.episodes == 10 and giant.train.preset == 'cpu-giant'
+    assert pipeline.collect_episodes('cpu-giant') == 400
+    for name in methods.names():  # every registered method has the preset
+        assert pipeline.RunConfig.preset('cpu-giant', method=name).train.steps == 150_000, name
+    assert cli.collect_episodes_of(cli.build_parser().parse_args(['run', '--preset', 'cpu-giant'])) == 400
+
+
 _CACHED_PROGRAM = '''
 import sys
 if sys.argv[1] == 'cli':

@@ -48,8 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
     r.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default=presets.DEFAULT, choices=presets.names(),
-                   help='every default of the run: cpu (minutes on a 2-core CPU), cpu-long (about an hour: 400 '
-                        'episodes, 50,000 updates), paper (the paper\'s sizes; for a GPU), ci (the wiring in a few minutes '
+                   help='every default of the run: cpu (minutes on a 2-core CPU), cpu-long (1-1.5 h: 400 '
+                        'episodes, 50,000 updates), cpu-giant (antmaze-giant in under 2 h: 400 episodes of 2,001 '
+                        'states, 150,000 updates, delta 12), paper (the paper\'s sizes; for a GPU), ci (the wiring in a few minutes '
                         'of compiling on a CPU, for tests; its success rates mean nothing)')
     r.add_argument('--set', action='append', metavar='SECTION.FIELD=VALUE',
                    help='override any config field, e.g. --set train.batch_size=512 --set map.delta=10 (a field '
@@ -57,8 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--out', default=None, help='run folder (default runs/ENV)')
     r.add_argument('--dataset', default=None, help='an OGBench-format .npz to train on instead of collecting')
     r.add_argument('--collect-episodes', type=int, default=None,
-                   help="navigate episodes to collect (1001 states each; default: the preset's: 100, 400 for cpu-long, "
-                        "4 for ci)")
+                   help="navigate episodes to collect (1001 states each, 2001 on giant; default: the preset's: 100, "
+                        "400 for cpu-long and cpu-giant, 4 for ci)")
     r.add_argument('--collect-batch', type=int, default=55,
                    help='episodes collected side by side (default: the 100 + 10 of the default run in 2 calls)')
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")
@@ -118,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument('--method', default=None, choices=methods.names(),
                    help='registered method (aqm-mjx methods; default aqm)')
     t.add_argument('--preset', default=None, choices=presets.names(),
-                   help='cpu: minutes on a 2-core CPU; cpu-long: 50,000 updates; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
+                   help='cpu: minutes on a 2-core CPU; cpu-long: 50,000 updates; cpu-giant: 150,000; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
                         'ci: smoke tests (default cpu)')
     t.add_argument('--set', action='append', metavar='FIELD=VALUE',
                    help='override a training config field, e.g. --set batch_size=512 --set q_hidden=512,512 (repeatable)')
@@ -179,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument('--style', default='navigate', choices=['navigate', 'stitch', 'explore'],
                    help='the dataset to collect (taken from the file name with --dataset)')
     k.add_argument('--collect-episodes', type=int, default=None,
-                   help="episodes to collect (default: the preset's, 100 or 400 for cpu-long)")
+                   help="episodes to collect (default: the preset's, 100, or 400 for cpu-long and cpu-giant)")
     k.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
     k.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")
     k.add_argument('--backend', default=None, choices=['mjx', 'ogbench'],

@@ -97,7 +97,7 @@ class AQMConfig(LoopConfig):
     @classmethod
     def preset(cls, name: str, **overrides) -> 'AQMConfig':
         """``paper``: Appendix 10 sizes; ``cpu``: a few minutes on a 2-core CPU; ``cpu-long``: ``cpu`` for 2.5x the
-        updates; ``ci``: tests."""
+        updates; ``cpu-giant``: ``cpu`` for 7.5x the updates; ``ci``: tests."""
         return cls(**{**presets.loop(name), **SIZES[name], 'preset': name, **overrides})
 
     @property
@@ -139,6 +139,9 @@ SIZES = {
     # cpu-long: the cpu networks for 2.5x the updates
     'cpu-long': dict(q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
                      lr_quasimetric=3e-4),
+    # cpu-giant: the cpu networks for 7.5x the updates
+    'cpu-giant': dict(q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
+                      lr_quasimetric=3e-4),
     'ci': dict(q_hidden=(32, 32), n_components=32, component_size=1, pi_hidden=(32, 32)),
 }
 

@@ -82,7 +82,7 @@ class BaselineConfig(LoopConfig):
     def preset(cls, name: str, **overrides):
         """``paper``: OGBench's sizes (batch 1024, 3 x 512, 10^6 updates); ``cpu``: AQM's cpu scale
         (batch 256, 3 x 256, 20,000 updates); ``cpu-long``: ``cpu`` for 50,000
-        updates; ``ci``: tests."""
+        updates; ``cpu-giant``: ``cpu`` for 150,000; ``ci``: tests."""
         return cls(**{**presets.loop(name), **SIZES[name], **cls.PRESET_OVERRIDES.get(name, {}), 'preset': name,
                       **overrides})
 
@@ -108,6 +108,7 @@ SIZES = {
     'paper': dict(actor_hidden=(512, 512, 512), value_hidden=(512, 512, 512), conditioning='goal'),
     'cpu': dict(actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
     'cpu-long': dict(actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
+    'cpu-giant': dict(actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
     'ci': dict(actor_hidden=(32, 32), value_hidden=(32, 32)),
 }
 
