@@ -3,6 +3,8 @@
 
     python benchmarks/experiments/node_count.py --aqm RUN_AQM --gas RUN_GAS --deltas 4 8 16 --gas-h 2 4 8 \\
         --episodes 10 --split dev --out benchmarks/results/node_count_medium
+    python benchmarks/experiments/node_count.py --aqm RUN_GIANT --deltas 8 12 16 24 --set map.max_keypoints=512 \\
+        --split report --out runs/node_count_giant
 
 For a trained AQM run and a trained GAS run (each ``aqm-mjx train`` folders on the same data), every
 setting builds its map from the run's dataset and evaluates it on the same episodes (OGBench's
@@ -111,6 +113,7 @@ def plot(rows: list, path: str) -> None:
     ax[1].set(xscale='log', yscale='log', xlabel='map nodes', ylabel='ms  /  kB', title='planning cost against map size')
     for a in ax:
         a.legend(fontsize=8)
+        a.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
         a.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
         a.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     fig.savefig(path, dpi=120)
@@ -127,13 +130,15 @@ def main(argv=None) -> int:
     p.add_argument('--split', default='dev', choices=('dev', 'report'))
     p.add_argument('--backend', default='ogbench', choices=('mjx', 'ogbench'))
     p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--set', action='append', default=[], metavar='SECTION.FIELD=VALUE',
+                   help='override a map, agent or protocol field for every setting, e.g. map.max_keypoints=512')
     p.add_argument('--out', required=True)
     a = p.parse_args(argv)
     if not (a.aqm or a.gas):
         p.error('give --aqm RUN and/or --gas RUN')
     os.makedirs(a.out, exist_ok=True)
     over = [f'protocol.episodes={a.episodes}', f'protocol.split={a.split}', f'protocol.backend={a.backend}',
-            'protocol.workers=1', 'protocol.ablations=']
+            'protocol.workers=1', 'protocol.ablations=', *a.set]
     _, k_map, k_eval = stage_keys(jax.random.PRNGKey(a.seed))
     rows = []
     for method, run, values in (('aqm', a.aqm, a.deltas), ('gas', a.gas, a.gas_h)):
