@@ -68,6 +68,9 @@ RUN = {
     'paper': dict(map=dict(delta=10.0), agent=dict(kappa=0.25, switch_radius=5.0),
                   protocol=dict(episodes=50, envs=1024, curve_episodes=10)),
 }
+# the network sizes each preset trains (the row of a method's SIZES and PRESET_OVERRIDES): cpu-long and
+# cpu-giant train the cpu networks for longer
+NETWORKS = {'paper': 'paper', 'cpu': 'cpu', 'cpu-long': 'cpu', 'cpu-giant': 'cpu', 'ci': 'ci'}
 SECTIONS = ('map', 'agent', 'protocol')
 SHARED = dict(map=('delta',), agent=('kappa', 'switch_radius'))  # set by every row; the classes' defaults
 
@@ -88,6 +91,13 @@ def loop(name: str) -> dict:
     if name not in LOOP:
         raise ValueError(f'unknown preset {name!r}; expected one of {", ".join(LOOP)}')
     return dict(LOOP[name])
+
+
+def networks(name: str) -> str:
+    """The network-size row preset ``name`` trains (``'cpu'`` for ``cpu-long`` and ``cpu-giant``)."""
+    if name not in NETWORKS:
+        raise ValueError(f'unknown preset {name!r}; expected one of {", ".join(NETWORKS)}')
+    return NETWORKS[name]
 
 
 def section(name: str, part: str) -> dict:

@@ -33,6 +33,23 @@ def test_the_classes_defaults_are_the_default_presets():
         pipeline.RunConfig.preset('cpu-longer')
 
 
+def test_every_preset_names_a_network_size_row_and_longer_presets_train_the_cpu_networks():
+    from aqm_mjx.learn import aqm
+    from aqm_mjx.learn.baselines import base
+
+    assert set(presets.NETWORKS) == set(presets.LOOP) == set(presets.RUN)
+    assert set(presets.NETWORKS.values()) == set(aqm.SIZES) == set(base.SIZES)
+    for name in methods.names():  # cpu-long and cpu-giant: the cpu networks, their own loops
+        cpu = methods.get(name).preset('cpu').to_dict()
+        for longer in ('cpu-long', 'cpu-giant'):
+            cfg = methods.get(name).preset(longer).to_dict()
+            differ = {k for k in cpu if cfg[k] != cpu[k]}
+            derived = {'tdr_steps'}  # GAS's phase boundary: half the run's steps
+            assert differ <= set(presets.LOOP[longer]) | {'preset'} | derived, (name, longer, differ)
+    with pytest.raises(ValueError, match="unknown preset 'cpu-longer'"):
+        presets.networks('cpu-longer')
+
+
 def test_every_method_takes_the_loop_from_the_one_table():
     for name in methods.names():
         for p in presets.LOOP:

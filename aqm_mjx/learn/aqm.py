@@ -98,7 +98,7 @@ class AQMConfig(LoopConfig):
     def preset(cls, name: str, **overrides) -> 'AQMConfig':
         """``paper``: Appendix 10 sizes; ``cpu``: a few minutes on a 2-core CPU; ``cpu-long``: ``cpu`` for 2.5x the
         updates; ``cpu-giant``: ``cpu`` for 7.5x the updates; ``ci``: tests."""
-        return cls(**{**presets.loop(name), **SIZES[name], 'preset': name, **overrides})
+        return cls(**{**presets.loop(name), **SIZES[presets.networks(name)], 'preset': name, **overrides})
 
     @property
     def offset(self) -> float:
@@ -128,7 +128,7 @@ class AQMConfig(LoopConfig):
 # the metrics the training bar shows, {metric: short name}
 PROGRESS = {'qrl/d_pos_mean': 'd_pos_mean', 'qrl/d_goal_mean': 'd_goal_mean', 'qrl/lambda': 'lambda',
             'policy/main_loss': 'main_loss'}
-# each preset's sizes beside the loop's (aqm_mjx.presets.LOOP)
+# the sizes of each size row (aqm_mjx.presets.networks: a preset's row), beside the loop's (presets.LOOP)
 SIZES = {
     'paper': dict(q_hidden=(512, 512, 512), n_components=512, component_size=1, pi_hidden=(512, 512, 512),
                   conditioning='goal'),
@@ -136,12 +136,6 @@ SIZES = {
     # antmaze-medium still joined keypoints across walls after 20,000 updates; RESULTS.md section 3.4)
     'cpu': dict(q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
                 lr_quasimetric=3e-4),
-    # cpu-long: the cpu networks for 2.5x the updates
-    'cpu-long': dict(q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
-                     lr_quasimetric=3e-4),
-    # cpu-giant: the cpu networks for 7.5x the updates
-    'cpu-giant': dict(q_hidden=(256, 256, 256), n_components=256, component_size=1, pi_hidden=(256, 256, 256),
-                      lr_quasimetric=3e-4),
     'ci': dict(q_hidden=(32, 32), n_components=32, component_size=1, pi_hidden=(32, 32)),
 }
 

@@ -83,10 +83,11 @@ class BaselineConfig(LoopConfig):
         """``paper``: OGBench's sizes (batch 1024, 3 x 512, 10^6 updates); ``cpu``: AQM's cpu scale
         (batch 256, 3 x 256, 20,000 updates); ``cpu-long``: ``cpu`` for 50,000
         updates; ``cpu-giant``: ``cpu`` for 150,000; ``ci``: tests."""
-        return cls(**{**presets.loop(name), **SIZES[name], **cls.PRESET_OVERRIDES.get(name, {}), 'preset': name,
+        size = presets.networks(name)
+        return cls(**{**presets.loop(name), **SIZES[size], **cls.PRESET_OVERRIDES.get(size, {}), 'preset': name,
                       **overrides})
 
-    PRESET_OVERRIDES = {}  # a method's preset-specific values (class attribute, not a field)
+    PRESET_OVERRIDES = {}  # a method's values by network-size row (presets.networks; class attribute, not a field)
 
 
 # the metrics the training bar shows, {metric: short name} (those a baseline logs)
@@ -103,12 +104,10 @@ def ogbench_styles(**explore) -> dict:
     return {'stitch': dict(STITCH_GOALS), 'explore': {**EXPLORE_GOALS, **explore}}
 
 
-# each preset's network widths beside the loop's (aqm_mjx.presets.LOOP)
+# the network widths of each size row (aqm_mjx.presets.networks: a preset's row), beside the loop's (presets.LOOP)
 SIZES = {
     'paper': dict(actor_hidden=(512, 512, 512), value_hidden=(512, 512, 512), conditioning='goal'),
     'cpu': dict(actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
-    'cpu-long': dict(actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
-    'cpu-giant': dict(actor_hidden=(256, 256, 256), value_hidden=(256, 256, 256)),
     'ci': dict(actor_hidden=(32, 32), value_hidden=(32, 32)),
 }
 

@@ -24,7 +24,7 @@ class CRLConfig(base.BaselineConfig):
     value_p_trajectory: float = option(1.0, 'value goals: P(a later state of the trajectory)')
     value_p_random: float = option(0.0, 'value goals: P(a random dataset state)')
 
-    PRESET_OVERRIDES = {'cpu': {'latent': 256}, 'cpu-long': {'latent': 256}, 'cpu-giant': {'latent': 256}, 'ci': {'latent': 16}}
+    PRESET_OVERRIDES = {'cpu': {'latent': 256}, 'ci': {'latent': 16}}
 
 
 def make(cfg: CRLConfig, obs_size: int, action_size: int):
