@@ -136,6 +136,17 @@ def _set(tree, path, value):
     node[path[-1]] = value
 
 
+def _set_checked(tree, path, value):
+    """:func:`_set` of a leaf whose shape must equal the reference's leaf at ``path`` (else the
+    script stops and names the path)."""
+    node = tree
+    for k in path[:-1]:
+        node = node[k]
+    if node[path[-1]].shape != value.shape:
+        raise SystemExit(f'shape mismatch at {path}: reference {node[path[-1]].shape}, ours {value.shape}')
+    node[path[-1]] = value
+
+
 def rel(a, b) -> float:
     """Largest absolute difference of ``a`` and ``b`` relative to ``a``'s largest magnitude."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)

@@ -34,7 +34,7 @@ from aqm_mjx.data import goals
 from aqm_mjx.learn import methods
 from aqm_mjx.learn.baselines import gas
 
-from bench_parity import (_flat, _gaussian_standin, _set, check_gradients, check_losses, check_update,
+from bench_parity import (_flat, _gaussian_standin, _set_checked, check_gradients, check_losses, check_update,
                           reference_parser, rel, verdict)
 
 HIDDEN, LATENT, OBS, ACT, B, W = (32, 32), 8, 29, 8, 64, 6
@@ -61,12 +61,7 @@ def to_reference(state, ref_params) -> dict:
     for tree, prefix in ((state.params, 'modules_'), (state.target, 'modules_target_')):
         for path, leaf in _flat(tree):
             where = (prefix + REF_NAMES[path[0]],) + path[2:]
-            node = out
-            for p in where[:-1]:
-                node = node[p]
-            if node[where[-1]].shape != leaf.shape:
-                raise SystemExit(f'shape mismatch at {where}: reference {node[where[-1]].shape}, ours {leaf.shape}')
-            _set(out, where, np.asarray(leaf))
+            _set_checked(out, where, np.asarray(leaf))
     return out
 
 
