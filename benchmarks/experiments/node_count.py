@@ -144,17 +144,18 @@ def main(argv=None) -> int:
     for method, run, values in (('aqm', a.aqm, a.deltas), ('gas', a.gas, a.gas_h)):
         if not run:
             continue
+        env, variants, base_cfg, path = assess.prepare_evaluation(run, None, None, 'base', over)
+        base, data = fit.load(run, log=lambda *_: None), assess.read_data(path, env)  # once per run
         for v in values:
-            env, variants, cfg, path = assess.prepare_evaluation(run, None, None, 'base', over)
-            trained = fit.load(run, log=lambda *_: None)
+            cfg, trained = base_cfg, base
             if method == 'aqm':
                 cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, delta=float(v)))
             else:
-                c = dataclasses.replace(trained.config, way_steps=int(v))
-                trained = trained._replace(config=c, learner=methods.get(trained.method).make(c, env.obs_size,
-                                                                                            env.action_size))
+                c = dataclasses.replace(base.config, way_steps=int(v))
+                trained = base._replace(config=c, learner=methods.get(base.method).make(c, env.obs_size,
+                                                                                       env.action_size))
             row = dict(setting=f'{method}: {"delta" if method == "aqm" else "H"} {v:g}',
-                       **setting(method, trained, env, assess.read_data(path, env), cfg, variants, k_map, k_eval,
+                       **setting(method, trained, env, data, cfg, variants, k_map, k_eval,
                                  os.path.join(a.out, f'{method}_{v:g}')))
             rows.append(row)
             print(f"{row['setting']:14} {row['nodes']:6d} nodes  success {100 * row['success']:5.1f}% "
