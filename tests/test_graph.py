@@ -248,3 +248,26 @@ def test_map_stage_selects_with_every_selector_including_the_papers_batches():
         if sel == 'iwe-batches':  # the paper's procedure: the best of 4 IWE runs on 256-state batches
             want = keypoints.iwe_best_of_batches(d, lat, jax.random.PRNGKey(1), 3.0, 128, 4, 256)
             assert int(want.count) == k and np.array_equal(want.index, kp.index)
+
+
+def test_node_count_joins_earlier_rows_only_when_they_evaluated_the_same_episodes(tmp_path):
+    import importlib.util  # pylint: disable=import-outside-toplevel
+    import json  # pylint: disable=import-outside-toplevel
+    import os  # pylint: disable=import-outside-toplevel
+
+    spec = importlib.util.spec_from_file_location('node_count', os.path.join(
+        os.path.dirname(__file__), '..', 'benchmarks', 'experiments', 'node_count.py'))
+    nc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(nc)
+    args = dict(episodes=10, split='report', backend='ogbench', seed=0, deltas=[12.0])
+    row = dict(method='aqm', nodes=193, success=0.7, ci95=[0.56, 0.81], fw_s=0.0026, bytes_per_env=483_000)
+    path = tmp_path / 'node_count.json'
+    path.write_text(json.dumps(dict(rows=[row], args=dict(args, deltas=[8.0, 12.0]))))
+    (got,) = nc.earlier_rows(str(path), dict(args, deltas=[]))  # other settings are fine
+    assert got == dict(row, from_file=str(path))
+    with pytest.raises(ValueError, match="split 'dev' there, 'report' here"):
+        path.write_text(json.dumps(dict(rows=[row], args=dict(args, split='dev'))))
+        nc.earlier_rows(str(path), args)
+    with pytest.raises(ValueError, match='not a node_count.json'):
+        path.write_text(json.dumps(dict(rows=[], args=args)))
+        nc.earlier_rows(str(path), args)

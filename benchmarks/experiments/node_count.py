@@ -22,6 +22,9 @@ subgoal radius H; its trained networks unchanged). Per setting it records
 
 Writes ``OUT/node_count.json`` and ``OUT/node_count.png`` (success against nodes, both methods, with
 intervals; planning cost against nodes). Only AQM's agent row and GAS's planner row are run.
+``--with EARLIER/node_count.json`` adds the rows of an earlier run of this script to the table and the
+picture (marked with the file they come from), after checking that it evaluated the same episodes
+(episodes per task, split, backend, seed); that both used the same dataset is the caller's to say.
 """
 
 from __future__ import annotations
@@ -90,6 +93,23 @@ def setting(method: str, trained, env, data, cfg, variants, k_map, k_eval, out: 
                 env_steps_per_s=res.timing.get('env_steps_per_s_after_first_chunk'), eval_s=res.timing['total_s'])
 
 
+SAME_EPISODES = ('episodes', 'split', 'backend', 'seed')
+
+
+def earlier_rows(path: str, args: dict) -> list:
+    """The rows of an earlier ``node_count.json``, each marked with ``from_file``; a ValueError when that
+    run evaluated other episodes (:data:`SAME_EPISODES` differ) or the file holds no rows."""
+    with open(path, encoding='utf-8') as f:
+        old = json.load(f)
+    if not isinstance(old, dict) or not old.get('rows') or 'args' not in old:
+        raise ValueError(f'{path}: not a node_count.json with rows and args')
+    diff = [f"{k} {old['args'].get(k)!r} there, {args[k]!r} here" for k in SAME_EPISODES
+            if old['args'].get(k) != args[k]]
+    if diff:
+        raise ValueError(f'{path} evaluated other episodes: ' + '; '.join(diff))
+    return [dict(r, from_file=path) for r in old['rows'] if 'from_file' not in r]
+
+
 def plot(rows: list, path: str) -> None:
     import matplotlib  # pylint: disable=import-outside-toplevel
     import matplotlib.ticker  # pylint: disable=import-outside-toplevel
@@ -132,10 +152,13 @@ def main(argv=None) -> int:
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--set', action='append', default=[], metavar='SECTION.FIELD=VALUE',
                    help='override a map, agent or protocol field for every setting, e.g. map.max_keypoints=512')
+    p.add_argument('--with', dest='earlier', metavar='NODE_COUNT_JSON',
+                   help="an earlier run's node_count.json whose rows join the table and the picture")
     p.add_argument('--out', required=True)
     a = p.parse_args(argv)
     if not (a.aqm or a.gas):
         p.error('give --aqm RUN and/or --gas RUN')
+    earlier = earlier_rows(a.earlier, vars(a)) if a.earlier else []
     os.makedirs(a.out, exist_ok=True)
     over = [f'protocol.episodes={a.episodes}', f'protocol.split={a.split}', f'protocol.backend={a.backend}',
             'protocol.workers=1', 'protocol.ablations=', *a.set]
@@ -162,9 +185,9 @@ def main(argv=None) -> int:
                   f"[{100 * row['ci95'][0]:.0f}-{100 * row['ci95'][1]:.0f}]  map {row['map_s']:.1f} s "
                   f"(warm {row['map_warm_s']:.2f})  FW {1e3 * row['fw_s']:.2f} ms  "
                   f"{row['bytes_per_env'] / 1e3:.1f} kB/env + {row['bytes_shared'] / 1e3:.1f} kB shared", flush=True)
-            files.write_json(os.path.join(a.out, 'node_count.json'), dict(rows=rows, args=vars(a)))
-    plot(rows, os.path.join(a.out, 'node_count.png'))
-    finish(rows, None)
+            files.write_json(os.path.join(a.out, 'node_count.json'), dict(rows=rows + earlier, args=vars(a)))
+    plot(rows + earlier, os.path.join(a.out, 'node_count.png'))
+    finish(rows + earlier, None)
     return 0
 
 
