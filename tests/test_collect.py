@@ -1,5 +1,6 @@
 """On-device collection: OGBench's recipe (cells, goals, directions), file format, CLI."""
 
+import dataclasses
 import os
 
 import jax
@@ -159,12 +160,45 @@ def test_ant_collection_is_upright_and_moves():
     assert travelled.min() > 1.5  # 6 s of trotting at >= 1 m/s, minus turns
 
 
+def test_host_physics_starts_each_episode_where_mjx_does_and_follows_the_same_expert():
+    env = envs.make('pointmaze-medium', max_episode_steps=30, terminate_at_goal=False)
+    keys = jax.random.split(jax.random.PRNGKey(3), 3)
+    mjx_out = jax.device_get(jax.jit(jax.vmap(collect.episode_fn(env, 'stitch', 30, 0.2)))(keys))
+    host = collect.HostEpisodes(env, 'stitch', 30, 0.2)(keys)
+    for k in ('observations', 'actions', 'qpos', 'qvel', 'upright'):
+        assert host[k].shape == mjx_out[k].shape, k
+    # the same start, goal, noise and first action; the point's physics then agrees closely (no spin, one body)
+    np.testing.assert_allclose(host['qpos'][:, 0], mjx_out['qpos'][:, 0], atol=1e-6)
+    np.testing.assert_allclose(host['actions'][:, 0], mjx_out['actions'][:, 0], atol=1e-5)
+    np.testing.assert_allclose(host['qpos'][:, 10], mjx_out['qpos'][:, 10], atol=1e-2)
+    ant = envs.make('antmaze-medium', max_episode_steps=60, terminate_at_goal=False)
+    out = collect.HostEpisodes(ant, 'stitch', 60, 0.2)(jax.random.split(jax.random.PRNGKey(0), 4))
+    np.testing.assert_array_equal(out['observations'], np.concatenate([out['qpos'], out['qvel']], -1))
+    assert out['upright'].all()
+    travelled = np.linalg.norm(out['qpos'][:, -1, :2] - out['qpos'][:, 0, :2], axis=-1)
+    assert travelled.min() > 1.5  # the scripted trot walks in OGBench's physics too
+    with pytest.raises(ValueError, match='teleport'):
+        collect.HostEpisodes(envs.make('antmaze-teleport', terminate_at_goal=False), 'navigate', 30, 0.2)
+    with pytest.raises(ValueError, match="unknown collection physics 'warp'"):
+        collect.CollectConfig(physics='warp').resolved()
+
+
+def test_host_collection_writes_the_file_mjx_would_and_records_its_physics(tmp_path):
+    cfg = collect.CollectConfig(env='pointmaze-medium', style='stitch', episodes=10, steps=100, batch=4, physics='mujoco')
+    res = collect.collect(cfg, progress=False)
+    assert res.train['observations'].shape == (1000, 2) and res.val['observations'].shape == (100, 2)
+    assert res.train['terminals'].sum() == 10 and res.train['terminals'][99]
+    assert res.stats['physics'] == 'mujoco' and res.stats['goals_reached_mean'] > 0.5
+    a = collect.collect(dataclasses.replace(cfg, batch=11), progress=False)  # chunking does not change episodes
+    np.testing.assert_array_equal(a.train['qpos'], res.train['qpos'])
+
+
 def test_cli_collect(tmp_path, capsys):
     with pytest.raises(SystemExit):
         cli.main(['collect', '--help'])
     help_text = capsys.readouterr().out
     for opt in ('--env', '--style', '--episodes', '--steps', '--noise', '--batch', '--seed', '--layout', '--out',
-                '--overwrite'):
+                '--overwrite', '--physics'):
         assert opt in help_text
     out = str(tmp_path / 'pm.npz')
     assert cli.main(['collect', '--env', 'pointmaze-medium', '--style', 'explore', '--episodes', '10', '--steps', '30',

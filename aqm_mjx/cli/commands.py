@@ -70,19 +70,20 @@ def cmd_render(a):
 
 
 def cmd_collect(a):
-    """Collect an OGBench-format dataset in MJX with the scripted expert."""
+    """Collect an OGBench-format dataset with the scripted expert (MJX, or MuJoCo on the host)."""
     enable_compile_cache()
     from aqm_mjx import files  # pylint: disable=import-outside-toplevel
     from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
 
     cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
-                                batch=a.batch, seed=a.seed, layout=a.layout).resolved()
+                                batch=a.batch, seed=a.seed, layout=a.layout, physics=a.physics).resolved()
     collect.check_output(a.out, a.overwrite, cfg)  # name, folder and free space before minutes of collection
     collect.check_memory(cfg)
     import jax  # pylint: disable=import-outside-toplevel
 
+    where = jax.devices()[0] if cfg.physics == 'mjx' else 'the host (MuJoCo)'
     print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
-          f'{cfg.env} ({cfg.layout} layout), noise {cfg.noise}, {cfg.batch} at a time on {jax.devices()[0]}')
+          f'{cfg.env} ({cfg.layout} layout), noise {cfg.noise}, {cfg.batch} at a time on {where}')
     physics = {k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations)) if v is not None}
     res = collect.collect(cfg, physics=physics)
     train, val = collect.write(res, a.out, overwrite=a.overwrite)

@@ -83,10 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument('--dataset', default=None, help="with --checkpoint: its data (default: config.json's)")
     d.set_defaults(fn=commands.cmd_render)
     c = sub.add_parser(
-        'collect', help='collect an OGBench-format dataset in MJX with the scripted expert',
+        'collect', help='collect an OGBench-format dataset in MJX (or host MuJoCo) with the scripted expert',
         description='Collect a dataset with OGBench\'s recipe: the scripted ant trot (or the point agent\'s '
-                    'direct move) steered along BFS waypoints, run in MJX, written as OGBench .npz plus the '
-                    '-val twin (a tenth as many episodes), a PNG of some trajectories and a JSON summary.')
+                    'direct move) steered along BFS waypoints, run in MJX (or, with --physics mujoco, in MuJoCo '
+                    'on the host), written as OGBench .npz plus the -val twin (a tenth as many episodes), a PNG of '
+                    'some trajectories and a JSON summary.')
     c.add_argument('--env', default='antmaze-medium', help='environment, e.g. antmaze-medium, antmaze-large, pointmaze-medium')
     c.add_argument('--style', default='navigate', choices=['navigate', 'stitch', 'explore'],
                    help='navigate: a new junction-cell goal each time one is reached (noise 0.2); stitch: a goal '
@@ -103,6 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument('--seed', type=int, default=0, help='random seed (episode e uses fold_in(seed, e))')
     c.add_argument('--layout', default='base',
                    help="walls of the data: 'base' or a shifted layout (close-I-J, open-I-J: the names of evaluate --shift)")
+    c.add_argument('--physics', default='mjx', choices=['mjx', 'mujoco'],
+                   help="mjx: each chunk as one jitted MJX program (any device); mujoco: MuJoCo's C library on "
+                        "the host with OGBench's static walls, several times faster on a CPU (other trajectories "
+                        "than MJX's; not for antmaze-teleport)")
     c.add_argument('--iterations', type=int, default=None,
                    help="MJX solver iterations (default MuJoCo's: 100); fewer trade fidelity for speed")
     c.add_argument('--ls-iterations', type=int, default=None, help="MJX line-search iterations (default MuJoCo's: 50)")

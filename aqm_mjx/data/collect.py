@@ -24,6 +24,7 @@ validation episodes, OGBench's ``-val`` twin.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import time
@@ -37,9 +38,10 @@ from aqm_mjx import envs, files
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import expert
 from aqm_mjx.envs import mazes, shifts
-from aqm_mjx.progress import BAR_FORMAT, ChunkBar, tick
+from aqm_mjx.progress import BAR_FORMAT, EVERY, ChunkBar, tick
 
 STYLES = ('navigate', 'stitch', 'explore')
+PHYSICS = ('mjx', 'mujoco')  # CollectConfig.physics: MJX on the device, or MuJoCo's C library on the host
 STITCH_CELLS = 4  # BFS steps from the start cell to a stitch goal
 EXPLORE_EVERY = 10  # control steps between explore direction draws
 
@@ -95,6 +97,7 @@ class CollectConfig:
     batch: int = 64
     seed: int = 0
     layout: str = 'base'
+    physics: str = 'mjx'
 
     def resolved(self) -> 'CollectConfig':
         """The config with OGBench's defaults filled in and every field checked."""
@@ -112,6 +115,8 @@ class CollectConfig:
         if int(c.batch) < 1:
             raise ValueError(f'batch must be >= 1; got {c.batch}')
         shifts.variant(maze, c.layout)  # an unknown layout names the maze's suite
+        if c.physics not in PHYSICS:
+            raise ValueError(f'unknown collection physics {c.physics!r}; expected one of {", ".join(PHYSICS)}')
         return c
 
     def grid(self) -> np.ndarray:
@@ -130,9 +135,81 @@ def _noisy_xy(key, ij):
     return xy + jax.random.uniform(key, (2,), minval=-noise, maxval=noise)
 
 
+@dataclasses.dataclass(frozen=True)
+class ExpertParts:
+    """The recipe's pure pieces for one environment, shared by both physics backends (one episode;
+    ``vmap`` them):
+
+    - ``start(key) -> (init_xy [2], goal_xy [2], phase [], k_reset, k_loop)``: the start cell and
+      first goal with their noise, the gait's phase, the key of the reset noise and of the steps;
+    - ``control(qpos, qvel, goal_xy, key, direction, t, phase) -> (action, key, direction, k_new,
+      k_newxy)``: the expert's noisy action before step ``t`` and the keys of a goal redraw;
+    - ``after(hit, reached, goal_xy, k_new, k_newxy) -> (reached, goal_xy)``: the count of goals
+      reached and the goal after the step (navigate draws a new junction where ``hit``).
+    """
+
+    start: Callable
+    control: Callable
+    after: Callable
+
+
+def expert_parts(env, style: str, noise: float, grid: np.ndarray) -> ExpertParts:
+    """:class:`ExpertParts` of ``style`` with action noise ``noise`` in the walls ``grid [H, W]``."""
+    check_style(style)
+    h, w = grid.shape
+    free = jnp.asarray(mazes.free_cells(grid))
+    junctions = jnp.asarray(mazes.junction_cells(grid))
+    ring_cells, ring_count = (jnp.asarray(a) for a in mazes.cells_at_bfs_distance(grid, STITCH_CELLS))
+    table = jnp.asarray(expert.bfs_next_cell(grid))
+    ant = env.agent == 'ant'
+
+    def draw_junction(key):
+        return junctions[jax.random.randint(key, (), 0, junctions.shape[0])]
+
+    def start(key):
+        k_init, k_goal, k_gxy, k_ixy, k_reset, k_phase, k_loop = jax.random.split(key, 7)
+        f = jax.random.randint(k_init, (), 0, free.shape[0])
+        init_ij = free[f]
+        if style == 'stitch':
+            goal_ij = ring_cells[f, jax.random.randint(k_goal, (), 0, ring_count[f])]
+        else:
+            goal_ij = draw_junction(k_goal)
+        phase = jax.random.uniform(k_phase, (), maxval=2 * jnp.pi)
+        return _noisy_xy(k_ixy, init_ij), _noisy_xy(k_gxy, goal_ij), phase, k_reset, k_loop
+
+    def control(qpos, qvel, goal_xy, key, direction, t, phase):
+        key, k_dir, k_noise, k_new, k_newxy = jax.random.split(key, 5)
+        if style == 'explore':
+            fresh = jax.random.normal(k_dir, (2,))
+            fresh = fresh / (jnp.linalg.norm(fresh) + 1e-6)
+            direction = jnp.where(t % EXPLORE_EVERY == 0, fresh, direction)
+        else:
+            d = expert.waypoint_command(qpos[:2], goal_xy, table, (h, w))
+            direction = d / (jnp.linalg.norm(d) + 1e-6)
+        a = expert.gait_action(qpos, qvel, direction, t, phase) if ant else direction
+        a = jnp.clip(a + noise * jax.random.normal(k_noise, a.shape), -1.0, 1.0)
+        return a, key, direction, k_new, k_newxy
+
+    def after(hit, reached, goal_xy, k_new, k_newxy):
+        if style == 'navigate':
+            return reached + hit.astype(jnp.int32), jnp.where(hit, _noisy_xy(k_newxy, draw_junction(k_new)), goal_xy)
+        if style == 'stitch':
+            return jnp.maximum(reached, hit.astype(jnp.int32)), goal_xy
+        return reached, goal_xy
+
+    return ExpertParts(start=start, control=control, after=after)
+
+
+def _upright(env, qpos, xp=jnp):
+    """bool ``[...]``: the ant's torso up axis above the horizon (always True for the point)."""
+    if env.agent != 'ant':
+        return xp.ones(qpos.shape[:-1], bool)
+    return (1 - 2 * (qpos[..., 4] ** 2 + qpos[..., 5] ** 2)) > 0
+
+
 def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Callable] = None, grid=None
                ) -> Callable[[jax.Array], dict]:
-    """A pure, jittable, vmappable function ``key -> one episode`` of OGBench-style data.
+    """A pure, jittable, vmappable function ``key -> one episode`` of OGBench-style data, in MJX.
 
     ``env`` must be built with ``terminate_at_goal=False`` and ``max_episode_steps >= steps``.
     ``grid`` (``[H, W]``, default the maze's layout): the walls of every episode; starts, goals and
@@ -147,64 +224,28 @@ def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Cal
         torso's up axis above the horizon; always True for the point).
     """
     check_style(style)
-    if env.terminate_at_goal:
-        raise ValueError('collection needs an environment built with terminate_at_goal=False')
-    if env.max_episode_steps < steps:
-        raise ValueError(f'the environment ends episodes after {env.max_episode_steps} steps; collection needs '
-                         f'max_episode_steps >= steps ({steps})')
+    _check_env(env, steps)
     if grid is None:  # the maze's own walls, which the environment holds already
         walls, grid = None, np.asarray(env.layout)
     else:
         grid = mazes.validate_grid(grid, env.maze)
         walls = jnp.asarray(grid)
-    h, w = grid.shape
-    free = jnp.asarray(mazes.free_cells(grid))
-    junctions = jnp.asarray(mazes.junction_cells(grid))
-    ring_cells, ring_count = (jnp.asarray(a) for a in mazes.cells_at_bfs_distance(grid, STITCH_CELLS))
-    table = jnp.asarray(expert.bfs_next_cell(grid))
-    ant = env.agent == 'ant'
-
-    def draw_junction(key):
-        return junctions[jax.random.randint(key, (), 0, junctions.shape[0])]
+    parts = expert_parts(env, style, noise, grid)
 
     def run(key):
-        k_init, k_goal, k_gxy, k_ixy, k_reset, k_phase, k_loop = jax.random.split(key, 7)
-        f = jax.random.randint(k_init, (), 0, free.shape[0])
-        init_ij = free[f]
-        if style == 'stitch':
-            goal_ij = ring_cells[f, jax.random.randint(k_goal, (), 0, ring_count[f])]
-        else:
-            goal_ij = draw_junction(k_goal)
-        state = env.reset_to(k_reset, _noisy_xy(k_ixy, init_ij), _noisy_xy(k_gxy, goal_ij), grid=walls)
-        phase = jax.random.uniform(k_phase, (), maxval=2 * jnp.pi)
+        init_xy, goal_xy, phase, k_reset, k_loop = parts.start(key)
+        state = env.reset_to(k_reset, init_xy, goal_xy, grid=walls)
 
         def body(carry, t):
             state, key, direction, reached = carry
-            key, k_dir, k_noise, k_new, k_newxy = jax.random.split(key, 5)
-            xy = state.data.qpos[:2]
-            if style == 'explore':
-                fresh = jax.random.normal(k_dir, (2,))
-                fresh = fresh / (jnp.linalg.norm(fresh) + 1e-6)
-                direction = jnp.where(t % EXPLORE_EVERY == 0, fresh, direction)
-            else:
-                d = expert.waypoint_command(xy, state.goal_xy, table, (h, w))
-                direction = d / (jnp.linalg.norm(d) + 1e-6)
-            if ant:
-                a = expert.gait_action(state.data.qpos, state.data.qvel, direction, t, phase)
-            else:
-                a = direction
-            a = jnp.clip(a + noise * jax.random.normal(k_noise, a.shape), -1.0, 1.0)
+            a, key, direction, k_new, k_newxy = parts.control(state.data.qpos, state.data.qvel, state.goal_xy, key,
+                                                              direction, t, phase)
             record = dict(observations=state.obs, actions=a, qpos=state.data.qpos.astype(jnp.float32),
                           qvel=state.data.qvel.astype(jnp.float32))
             state = env.step(state, a)
-            hit = state.success > 0
-            if style == 'navigate':
-                reached = reached + hit.astype(jnp.int32)
-                state = state.replace(goal_xy=jnp.where(hit, _noisy_xy(k_newxy, draw_junction(k_new)), state.goal_xy))
-            elif style == 'stitch':
-                reached = jnp.maximum(reached, hit.astype(jnp.int32))
-            q = state.data.qpos
-            record['upright'] = (1 - 2 * (q[4] ** 2 + q[5] ** 2)) > 0 if ant else jnp.ones((), bool)
+            reached, goal_xy = parts.after(state.success > 0, reached, state.goal_xy, k_new, k_newxy)
+            state = state.replace(goal_xy=goal_xy)
+            record['upright'] = _upright(env, state.data.qpos)
             tick(progress, t, steps)
             return (state, key, direction, reached), record
 
@@ -214,6 +255,99 @@ def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Cal
         return out
 
     return run
+
+
+def _check_env(env, steps: int) -> None:
+    if env.terminate_at_goal:
+        raise ValueError('collection needs an environment built with terminate_at_goal=False')
+    if env.max_episode_steps < steps:
+        raise ValueError(f'the environment ends episodes after {env.max_episode_steps} steps; collection needs '
+                         f'max_episode_steps >= steps ({steps})')
+
+
+class HostEpisodes:
+    """The recipe's episodes with OGBench's physics on the host: MuJoCo's C library stepping a model
+    with the maze's static wall boxes (OGBench's own), one ``MjData`` per episode of a chunk, and the
+    expert's pieces (:func:`expert_parts`) jitted and vmapped over the chunk once per control step.
+
+    ``HostEpisodes(env, style, steps, noise, grid)(keys, progress) -> dict``: the same keys, records
+    and summaries as ``jax.vmap(episode_fn(...))(keys)``, as NumPy arrays. The trajectories are not
+    MJX's bit for bit (other contact and solver code, float64), so a dataset says which physics made it.
+    On a CPU this is several times faster than MJX, whose collision and solver code is built for
+    accelerator batches (``benchmarks/throughput/bench_collect.py``). The teleport maze is MJX's only.
+    """
+
+    def __init__(self, env, style: str, steps: int, noise: float, grid=None):
+        import mujoco  # pylint: disable=import-outside-toplevel
+        from aqm_mjx.envs import locomaze  # pylint: disable=import-outside-toplevel
+
+        check_style(style)
+        _check_env(env, steps)
+        if env.teleport:
+            raise ValueError('host physics does not model the teleport portals; collect antmaze-teleport in MJX')
+        self.grid = np.asarray(env.layout) if grid is None else mazes.validate_grid(grid, env.maze)
+        self.env, self.steps, self.mujoco = env, int(steps), mujoco
+        self.model = locomaze.build_mj_model(env.agent, env.physics, static_walls=self.grid)
+        parts = expert_parts(env, style, noise, self.grid)
+        def start(key):
+            init_xy, goal_xy, phase, k_reset, k_loop = parts.start(key)
+            return (goal_xy, phase, *env.initial_state(k_reset, init_xy), k_loop)
+
+        self.start = jax.jit(jax.vmap(start))
+        self.control = jax.jit(jax.vmap(parts.control, in_axes=(0, 0, 0, 0, 0, None, 0)))
+        self.after = jax.jit(jax.vmap(parts.after))
+        self.datas: list = []
+
+    def _step(self, d, a) -> None:
+        """One control step of one episode: ``frame_skip`` physics steps (OGBench's point moves its
+        position by 0.2 a with the velocity zeroed first, as :meth:`MazeEnv.physics_step`)."""
+        if self.env.agent == 'ant':
+            d.ctrl[:] = a
+        else:
+            d.qpos[:] = d.qpos + 0.2 * a
+            d.qvel[:] = 0.0
+        for _ in range(self.env.frame_skip):
+            self.mujoco.mj_step(self.model, d)
+
+    def __call__(self, keys, progress: Optional[Callable] = None) -> dict:
+        mj, env, n, t_all = self.mujoco, self.env, len(keys), self.steps
+        while len(self.datas) < n:
+            self.datas.append(mj.MjData(self.model))
+        datas = self.datas[:n]
+        goal_xy, phase, qpos0, qvel0, key = self.start(jnp.asarray(keys))
+        qpos0, qvel0 = np.asarray(qpos0, np.float64), np.asarray(qvel0, np.float64)
+        for b, d in enumerate(datas):
+            mj.mj_resetData(self.model, d)
+            d.qpos[:], d.qvel[:] = qpos0[b], qvel0[b]
+            mj.mj_forward(self.model, d)
+        nq, nv = self.model.nq, self.model.nv
+        out = dict(observations=np.empty((n, t_all, env.obs_size), np.float32),
+                   actions=np.empty((n, t_all, env.action_size), np.float32),
+                   qpos=np.empty((n, t_all, nq), np.float32), qvel=np.empty((n, t_all, nv), np.float32),
+                   upright=np.empty((n, t_all), bool))
+        direction = jnp.tile(jnp.array([1.0, 0.0]), (n, 1))
+        reached = jnp.zeros(n, jnp.int32)
+        qpos = np.stack([d.qpos for d in datas])
+        qvel = np.stack([d.qvel for d in datas])
+        for t in range(t_all):
+            a, key, direction, k_new, k_newxy = self.control(jnp.asarray(qpos, jnp.float32),
+                                                             jnp.asarray(qvel, jnp.float32), goal_xy, key,
+                                                             direction, t, phase)
+            a = np.asarray(a)
+            out['qpos'][:, t], out['qvel'][:, t], out['actions'][:, t] = qpos, qvel, a
+            for b, d in enumerate(datas):
+                self._step(d, a[b].astype(np.float64))
+            qpos = np.stack([d.qpos for d in datas])
+            qvel = np.stack([d.qvel for d in datas])
+            out['upright'][:, t] = _upright(env, qpos, np)
+            hit = np.linalg.norm(qpos[:, :2] - np.asarray(goal_xy), axis=-1) <= env.goal_tol
+            reached, goal_xy = self.after(jnp.asarray(hit), reached, goal_xy, k_new, k_newxy)
+            if progress is not None and ((t + 1) % EVERY == 0 or t + 1 == t_all):
+                progress(t + 1)
+        out['observations'] = (np.concatenate([out['qpos'], out['qvel']], -1) if env.agent == 'ant'
+                               else out['qpos'].copy())
+        out['goals_reached'] = np.asarray(reached)
+        return out
 
 
 # ---------------------------------------------------------------------------------------- collect
@@ -230,12 +364,14 @@ class CollectResult:
 def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool = True) -> CollectResult:
     """Collect ``cfg.episodes`` training and ``cfg.episodes // 10`` validation episodes.
 
-    Episodes run ``cfg.batch`` at a time in one jitted, vmapped call (time under ``lax.scan``);
-    the host copies each chunk once into preallocated arrays.
+    Episodes run ``cfg.batch`` at a time: in MJX as one jitted, vmapped call (time under
+    ``lax.scan``), or with ``cfg.physics == 'mujoco'`` on the host (:class:`HostEpisodes`); the host
+    copies each chunk once into preallocated arrays.
 
     Args:
         cfg: what to collect (see :class:`CollectConfig`).
-        physics: MJX physics overrides for :func:`aqm_mjx.envs.make` (e.g. ``{'iterations': 4}``).
+        physics: physics overrides for :func:`aqm_mjx.envs.make` (e.g. ``{'iterations': 4}``; the host
+            model takes them too).
         progress: show a progress bar over episodes; it moves every few dozen steps within a chunk.
     Returns:
         :class:`CollectResult` with ``train``/``val`` dicts of ``observations``, ``actions``,
@@ -248,7 +384,11 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     bar = _progress(total, f'collect {cfg.env} {cfg.style}', progress)
     ticks = ChunkBar(bar)
     grid = None if cfg.layout == shifts.BASE else cfg.grid()
-    run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise, progress=ticks, grid=grid)))
+    if cfg.physics == 'mujoco':
+        host = HostEpisodes(env, cfg.style, cfg.steps, cfg.noise, grid=grid)
+        run = functools.partial(host, progress=ticks)
+    else:
+        run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise, progress=ticks, grid=grid)))
     base = jax.random.PRNGKey(cfg.seed)
     n, t = total * cfg.steps, cfg.steps
     nq, nv = env.mj_model.nq, env.mj_model.nv
@@ -264,7 +404,7 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
         keys = jax.vmap(lambda e: jax.random.fold_in(base, e))(ids)
         m = min(batch, total - first)
         ticks.start(m, t)
-        out = jax.device_get(run(keys))
+        out = jax.device_get(run(keys if cfg.physics == 'mjx' else keys[:m]))  # MJX: one static shape
         ticks.finish()
         if first_chunk_s is None:
             first_chunk_s = time.perf_counter() - t0
@@ -291,7 +431,8 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
                  wall_s=round(wall, 2), first_chunk_s=round(first_chunk_s, 2),
                  steady_transitions_per_s=round(steady / run_s, 1) if steady and run_s > 0 else None,
                  goals_reached_mean=float(reached.mean()), flipped_episodes=int(flipped.sum()),
-                 progress_callbacks=ticks.calls, backend=jax.default_backend())
+                 progress_callbacks=ticks.calls, physics=cfg.physics,
+                 backend=jax.default_backend() if cfg.physics == 'mjx' else 'host')
     return CollectResult(train=train, val=val, config=cfg, stats=stats)
 
 

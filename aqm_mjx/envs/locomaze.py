@@ -349,18 +349,21 @@ class MazeEnv:
 
     def reset_to(self, key: jax.Array, init_xy: jax.Array, goal_xy: jax.Array, grid=None, task_id=0) -> State:
         """Start an episode at ``init_xy [2]`` with goal ``goal_xy [2]`` (no further noise on either)."""
-        k_goal, k_init, k_env = jax.random.split(key, 3)
+        k_goal, _, k_env = jax.random.split(key, 3)
         grid = self._grid(grid)
-        init_xy = jnp.asarray(init_xy, jnp.float32)
         goal_xy = jnp.asarray(goal_xy, jnp.float32)
         goal = self.goal_observation(k_goal, goal_xy)
-        qpos, qvel = self._noisy_state(k_init)
-        qpos = qpos.at[:2].set(init_xy)
-        data = self.set_state(qpos, qvel)
+        data = self.set_state(*self.initial_state(key, init_xy))
         f32 = jnp.float32
         return State(data=data, obs=self._obs(data), goal=goal, goal_xy=goal_xy, grid=grid, key=k_env,
                      steps=jnp.zeros((), jnp.int32), success=jnp.zeros((), f32), done=jnp.zeros((), bool),
                      reward=jnp.zeros((), f32), task_id=jnp.asarray(task_id, jnp.int32))
+
+    def initial_state(self, key: jax.Array, init_xy: jax.Array) -> tuple:
+        """``(qpos [nq], qvel [nv])`` that :meth:`reset_to` starts from with the same ``key``: the reset
+        noise, the torso moved to ``init_xy [2]`` (host-physics collection starts its episodes here)."""
+        qpos, qvel = self._noisy_state(jax.random.split(key, 3)[1])
+        return qpos.at[:2].set(jnp.asarray(init_xy, jnp.float32)), qvel
 
     def step(self, state: State, action: jax.Array) -> State:
         """Advance one control step with ``action [action_size]`` (clipped to [-1, 1]).
