@@ -1,6 +1,7 @@
-"""Dataset collection throughput in MJX (transitions/s) against OGBench's own collection loop.
+"""Dataset collection throughput in MJX and in host MuJoCo (transitions/s) against OGBench's own
+collection loop.
 
-    python benchmarks/throughput/bench_collect.py                        # CPU: about 12 minutes
+    python benchmarks/throughput/bench_collect.py                        # CPU: about 16 minutes
     python benchmarks/throughput/bench_collect.py --batches 1024 4096 --dataset-episodes 1000   # on a GPU
 
 Rows 'mjx batch B': ``B`` navigate episodes of ``--steps`` states in antmaze-medium with the
@@ -9,8 +10,12 @@ compiles and runs; the second call, on new keys, is timed alone (``block_until_r
 Row 'ogbench loop': OGBench's gymnasium ``antmaze-medium-v0`` stepped one environment at a time
 with ``terminate_at_goal=False``, the BFS oracle queried every step as its collection script does,
 and random actions instead of the SAC expert's network (so its rate is an upper bound on OGBench's).
-Row 'navigate 100K': :func:`aqm_mjx.data.collect.collect` end to end for ``--dataset-episodes`` episodes of
-1001 states plus the tenth for validation, compile included.
+Rows 'host batch B': the same episodes with ``collect --physics mujoco``
+(:class:`aqm_mjx.data.collect.HostEpisodes`: MuJoCo's C library with OGBench's static walls, one
+``MjData`` per episode, the expert jitted over the batch once per step), timed the same way, with
+the ratio to the MJX row of the same batch.
+Rows 'navigate 100K': :func:`aqm_mjx.data.collect.collect` end to end for ``--dataset-episodes`` episodes of
+1001 states plus the tenth for validation, compile included, with each ``--dataset-physics``.
 """
 
 from __future__ import annotations
@@ -46,6 +51,21 @@ def mjx_rate(env_name, batch, steps, seed=0):
                 flipped=int((~np.asarray(out['upright'][:, -1])).sum()))
 
 
+def host_rate(env_name, batch, steps, seed=0):
+    env = envs.make(env_name, max_episode_steps=steps, terminate_at_goal=False)
+    run = collect.HostEpisodes(env, 'navigate', steps, 0.2)
+    keys = jax.random.split(jax.random.PRNGKey(seed), 2 * batch)
+    t0 = time.perf_counter()
+    run(keys[:batch])
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = run(keys[batch:])
+    second = time.perf_counter() - t0
+    return dict(row=f'host batch {batch}', batch=batch, steps=steps, transitions=batch * steps,
+                compile_s=round(first - second, 1), run_s=round(second, 2),
+                transitions_per_s=round(batch * steps / second, 1), flipped=int((~out['upright'][:, -1]).sum()))
+
+
 def ogbench_rate(n_steps, seed=0):
     import gymnasium  # pylint: disable=import-outside-toplevel
     import ogbench.locomaze  # noqa: F401  pylint: disable=import-outside-toplevel,unused-import
@@ -75,6 +95,8 @@ def main():
     p.add_argument('--dataset-episodes', type=int, default=100,
                    help='navigate episodes of 1001 states for the end-to-end row (0 skips it)')
     p.add_argument('--dataset-batch', type=int, default=110)
+    p.add_argument('--dataset-physics', nargs='*', default=['mjx', 'mujoco'], choices=collect.PHYSICS)
+    p.add_argument('--no-host', action='store_true', help='skip the host rows')
     p.add_argument('--out', default=None, help='JSON file for the rows')
     a = p.parse_args()
     rows = []
@@ -86,13 +108,19 @@ def main():
         r['vs_ogbench_loop'] = round(r['transitions_per_s'] / base['transitions_per_s'], 2)
         print(r, flush=True)
         rows.append(r)
-    if a.dataset_episodes:
+        if not a.no_host:
+            h = host_rate(a.env, b, a.steps)
+            h['vs_ogbench_loop'] = round(h['transitions_per_s'] / base['transitions_per_s'], 2)
+            h['vs_mjx_same_batch'] = round(h['transitions_per_s'] / r['transitions_per_s'], 2)
+            print(h, flush=True)
+            rows.append(h)
+    for physics in a.dataset_physics if a.dataset_episodes else []:
         res = collect.collect(collect.CollectConfig(env=a.env, style='navigate', episodes=a.dataset_episodes,
-                                                    batch=a.dataset_batch), progress=False)
+                                                    batch=a.dataset_batch, physics=physics), progress=False)
         s = res.stats
-        r = dict(row=f'navigate {s["episodes"]}+{s["val_episodes"]} episodes x {s["steps"]}', transitions=s['transitions'],
-                 train_transitions=s['episodes'] * s['steps'], batch=s['batch'], wall_s_incl_compile=s['wall_s'],
-                 transitions_per_s_incl_compile=round(s['transitions'] / s['wall_s'], 1),
+        r = dict(row=f'navigate {s["episodes"]}+{s["val_episodes"]} episodes x {s["steps"]} ({physics})',
+                 transitions=s['transitions'], train_transitions=s['episodes'] * s['steps'], batch=s['batch'],
+                 wall_s_incl_compile=s['wall_s'], transitions_per_s_incl_compile=round(s['transitions'] / s['wall_s'], 1),
                  goals_reached_per_episode=round(s['goals_reached_mean'], 2), flipped_episodes=s['flipped_episodes'])
         r['vs_ogbench_loop_time'] = round((s['transitions'] / base['transitions_per_s']) / s['wall_s'], 2)
         print(r, flush=True)
