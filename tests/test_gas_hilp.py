@@ -274,10 +274,13 @@ def test_compare_trains_and_evaluates_gas_and_hilp_with_their_own_planners(tmp_p
     path = str(tmp_path / 'pointmaze-medium-navigate.npz')
     np.savez(path, **synthetic.point_walks(n_traj=60, t_len=60, seed=0))
     out = str(tmp_path / 'cmp')
-    over = ['steps=100', 'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20']
+    over = ['steps=100', 'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20', 'protocol.ablations=flat']
+    said = []
     res = compare.compare('pointmaze-medium', ['gas', 'hilp'], 2, out, preset='ci', dataset=path, overrides=over,
-                          log=lambda *_: None)
+                          log=lambda *a: said.append(' '.join(map(str, a))))
     assert list(res['rows']) == ['gas', 'hilp'] and all(r['base']['episodes'] == 4 for r in res['rows'].values())
+    # an ablation asked of a method that does not prune is not run, and the log says so
+    assert sum('does not prune, so its own agent runs alone' in s for s in said) == 2
     for m in ('gas', 'hilp'):
         ev = json.load(open(os.path.join(out, 'eval', m, 'results.json')))
         assert set(ev['summary']) == {f'{m}:seed_0/planner', f'{m}:seed_1/planner'}
