@@ -32,12 +32,13 @@ from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from aqm_mjx import envs, files
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import expert
-from aqm_mjx.envs import mazes, shifts
+from aqm_mjx.envs import locomaze, mazes, shifts
 from aqm_mjx.progress import BAR_FORMAT, EVERY, ChunkBar, tick
 
 STYLES = ('navigate', 'stitch', 'explore')
@@ -278,17 +279,15 @@ class HostEpisodes:
     """
 
     def __init__(self, env, style: str, steps: int, noise: float, grid=None):
-        import mujoco  # pylint: disable=import-outside-toplevel
-        from aqm_mjx.envs import locomaze  # pylint: disable=import-outside-toplevel
-
         check_style(style)
         _check_env(env, steps)
         if env.teleport:
             raise ValueError('host physics does not model the teleport portals; collect antmaze-teleport in MJX')
         self.grid = np.asarray(env.layout) if grid is None else mazes.validate_grid(grid, env.maze)
-        self.env, self.steps, self.mujoco = env, int(steps), mujoco
+        self.env, self.steps = env, int(steps)
         self.model = locomaze.build_mj_model(env.agent, env.physics, static_walls=self.grid)
         parts = expert_parts(env, style, noise, self.grid)
+
         def start(key):
             init_xy, goal_xy, phase, k_reset, k_loop = parts.start(key)
             return (goal_xy, phase, *env.initial_state(k_reset, init_xy), k_loop)
@@ -300,26 +299,26 @@ class HostEpisodes:
 
     def _step(self, d, a) -> None:
         """One control step of one episode: ``frame_skip`` physics steps (OGBench's point moves its
-        position by 0.2 a with the velocity zeroed first, as :meth:`MazeEnv.physics_step`)."""
+        position by ``POINT_MOVE`` a with the velocity zeroed first, as :meth:`MazeEnv.physics_step`)."""
         if self.env.agent == 'ant':
             d.ctrl[:] = a
         else:
-            d.qpos[:] = d.qpos + 0.2 * a
+            d.qpos[:] = d.qpos + locomaze.POINT_MOVE * a
             d.qvel[:] = 0.0
         for _ in range(self.env.frame_skip):
-            self.mujoco.mj_step(self.model, d)
+            mujoco.mj_step(self.model, d)
 
     def __call__(self, keys, progress: Optional[Callable] = None) -> dict:
-        mj, env, n, t_all = self.mujoco, self.env, len(keys), self.steps
+        env, n, t_all = self.env, len(keys), self.steps
         while len(self.datas) < n:
-            self.datas.append(mj.MjData(self.model))
+            self.datas.append(mujoco.MjData(self.model))
         datas = self.datas[:n]
         goal_xy, phase, qpos0, qvel0, key = self.start(jnp.asarray(keys))
         qpos0, qvel0 = np.asarray(qpos0, np.float64), np.asarray(qvel0, np.float64)
         for b, d in enumerate(datas):
-            mj.mj_resetData(self.model, d)
+            mujoco.mj_resetData(self.model, d)
             d.qpos[:], d.qvel[:] = qpos0[b], qvel0[b]
-            mj.mj_forward(self.model, d)
+            mujoco.mj_forward(self.model, d)
         nq, nv = self.model.nq, self.model.nv
         out = dict(observations=np.empty((n, t_all, env.obs_size), np.float32),
                    actions=np.empty((n, t_all, env.action_size), np.float32),

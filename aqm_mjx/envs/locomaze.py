@@ -51,6 +51,7 @@ from aqm_mjx.envs import mazes
 N_PROXIES = 3
 PARK_XY = 1.0e3  # parked proxies sit this far away, beyond any contact margin
 GOAL_WARMUP_STEPS = 5  # OGBench takes the goal observation after 5 random actions
+POINT_MOVE = 0.2  # OGBench's point: an action moves its position by this times the action, per control step
 INTEGRATORS = {'euler': mujoco.mjtIntegrator.mjINT_EULER, 'rk4': mujoco.mjtIntegrator.mjINT_RK4,
                'implicitfast': mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
 SOLVERS = {'newton': mujoco.mjtSolver.mjSOL_NEWTON, 'cg': mujoco.mjtSolver.mjSOL_CG}
@@ -262,7 +263,8 @@ class MazeEnv:
             data = data.replace(ctrl=action.astype(data.ctrl.dtype))
         else:
             # OGBench's point: the action moves the position directly, velocity is zeroed, ctrl stays 0.
-            data = data.replace(qpos=data.qpos + 0.2 * action.astype(data.qpos.dtype), qvel=jnp.zeros_like(data.qvel))
+            data = data.replace(qpos=data.qpos + POINT_MOVE * action.astype(data.qpos.dtype),
+                                qvel=jnp.zeros_like(data.qvel))
 
         def substep(d, _):
             return mjx.step(self.mjx_model, d), None

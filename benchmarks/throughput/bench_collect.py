@@ -35,9 +35,14 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 from _report import finish  # noqa: E402
 
 
-def mjx_rate(env_name, batch, steps, seed=0):
+def rate(env_name, batch, steps, physics='mjx', seed=0):
+    """The row of ``batch`` navigate episodes of ``steps`` states in ``physics`` ('mjx' or 'mujoco'): a first
+    call (compile and run), then a second on new keys timed alone."""
     env = envs.make(env_name, max_episode_steps=steps, terminate_at_goal=False)
-    run = jax.jit(jax.vmap(collect.episode_fn(env, 'navigate', steps, 0.2)))
+    if physics == 'mjx':
+        run = jax.jit(jax.vmap(collect.episode_fn(env, 'navigate', steps, 0.2)))
+    else:
+        run = collect.HostEpisodes(env, 'navigate', steps, 0.2)
     keys = jax.random.split(jax.random.PRNGKey(seed), 2 * batch)
     t0 = time.perf_counter()
     jax.block_until_ready(run(keys[:batch]))
@@ -45,25 +50,10 @@ def mjx_rate(env_name, batch, steps, seed=0):
     t0 = time.perf_counter()
     out = jax.block_until_ready(run(keys[batch:]))
     second = time.perf_counter() - t0
-    rate = batch * steps / second
-    return dict(row=f'mjx batch {batch}', batch=batch, steps=steps, transitions=batch * steps,
-                compile_s=round(first - second, 1), run_s=round(second, 2), transitions_per_s=round(rate, 1),
+    return dict(row=f'{"mjx" if physics == "mjx" else "host"} batch {batch}', batch=batch, steps=steps,
+                transitions=batch * steps, compile_s=round(first - second, 1), run_s=round(second, 2),
+                transitions_per_s=round(batch * steps / second, 1),
                 flipped=int((~np.asarray(out['upright'][:, -1])).sum()))
-
-
-def host_rate(env_name, batch, steps, seed=0):
-    env = envs.make(env_name, max_episode_steps=steps, terminate_at_goal=False)
-    run = collect.HostEpisodes(env, 'navigate', steps, 0.2)
-    keys = jax.random.split(jax.random.PRNGKey(seed), 2 * batch)
-    t0 = time.perf_counter()
-    run(keys[:batch])
-    first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    out = run(keys[batch:])
-    second = time.perf_counter() - t0
-    return dict(row=f'host batch {batch}', batch=batch, steps=steps, transitions=batch * steps,
-                compile_s=round(first - second, 1), run_s=round(second, 2),
-                transitions_per_s=round(batch * steps / second, 1), flipped=int((~out['upright'][:, -1]).sum()))
 
 
 def ogbench_rate(n_steps, seed=0):
@@ -104,12 +94,12 @@ def main():
     print(base, flush=True)
     rows.append(base)
     for b in a.batches:
-        r = mjx_rate(a.env, b, a.steps)
+        r = rate(a.env, b, a.steps)
         r['vs_ogbench_loop'] = round(r['transitions_per_s'] / base['transitions_per_s'], 2)
         print(r, flush=True)
         rows.append(r)
         if not a.no_host:
-            h = host_rate(a.env, b, a.steps)
+            h = rate(a.env, b, a.steps, 'mujoco')
             h['vs_ogbench_loop'] = round(h['transitions_per_s'] / base['transitions_per_s'], 2)
             h['vs_mjx_same_batch'] = round(h['transitions_per_s'] / r['transitions_per_s'], 2)
             print(h, flush=True)

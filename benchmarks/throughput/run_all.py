@@ -71,7 +71,7 @@ def main(argv=None):
     t_all = time.perf_counter()
 
     if 'collection' not in args.skip:
-        m = bench_collect.mjx_rate('antmaze-medium', s['collect_batch'], s['collect_steps'])
+        m = bench_collect.rate('antmaze-medium', s['collect_batch'], s['collect_steps'])
         o = bench_collect.ogbench_rate(s['loop_steps'])
         rows.append(dict(stage='collection', measured=f"MJX navigate, batch {m['batch']}, {m['steps']} steps",
                          ours=f"{m['transitions_per_s']:,.0f} transitions/s",
