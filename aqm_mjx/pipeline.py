@@ -93,6 +93,7 @@ class RunConfig:
 
 
 collect_episodes = presets.collect_episodes
+collect_physics = presets.collect_physics
 
 
 def stage_keys(key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -15,7 +15,7 @@ which a row may change. A method's config adds only its own sizes to :func:`loop
 
 from __future__ import annotations
 
-DEFAULT = 'cpu'  # the preset whose values are the configs' dataclass defaults
+DEFAULT = 'cpu'  # the preset whose values are the configs' dataclass defaults (and every command's)
 
 # The training loop, once for every method: updates, batch, updates per jitted call, metric lines and
 # checkpoints.
@@ -24,7 +24,8 @@ LOOP = {
     'paper': dict(steps=1_000_000, batch_size=1024, updates_per_call=1000, log_every=5000, checkpoint_every=50_000),
     # a few minutes on a 2-core CPU: 50x fewer updates, a quarter of the batch
     'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
-    # cpu for 2.5x the updates (antmaze-large in 1-1.5 h on a 2-core CPU, RESULTS.md section 2.1)
+    # cpu for 2.5x the updates (antmaze-medium in about 11 min of training on a 2-core CPU, antmaze-large in
+    # 1-1.5 h for 2 seeds)
     'cpu-long': dict(steps=50_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
     # cpu for 7.5x the updates: antmaze-giant navigate (RESULTS.md section 2.3)
     'cpu-giant': dict(steps=150_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
@@ -33,33 +34,35 @@ LOOP = {
 }
 
 # A run's sections beside training. 'collect_episodes' is the data a run collects when no --dataset or
-# --collect-episodes is given (100 where a row does not say).
+# --collect-episodes is given (100 where a row does not say), 'collect_physics' the physics it collects in
+# ('mjx' where a row does not say; 'mujoco': MuJoCo's C library on the host, 6-8x faster on a CPU).
 RUN = {
     # the wiring, not the skill: 4 collected episodes, 200 updates, 60-step episodes (compiling dominates)
     'ci': dict(map=dict(delta=0.5, max_keypoints=32, candidates=400),
                agent=dict(kappa=0.0, switch_radius=0.6),
                protocol=dict(episodes=2, horizon=60, envs=64, calibration_episodes=20),
                collect_episodes=4),
-    # map and agent values measured at this scale (RESULTS.md section 3.4); the AQM row on the stall rule
-    # with parallel cuts 0.6 (the paper's single cut: cut_slack=0), its patience 6 x the calibration
-    # pass's 90th percentile of the longest stall: stable across calibration keys where the 0.5% quantile
-    # was not, and the larger closure gain on four models' development episodes
-    # (benchmarks/results/diagnose_closures_dev/NOTES.md); kappas (fixed rule, paper=cal) at the protocol's
-    # false-alarm rate
-    # learning curve: 2 development episodes per task at every checkpoint, in OGBench's environments (on a
-    # 2-core CPU about 8 s a point there, 33 s in MJX)
+    # the replanning rule (the cpu and cpu-long rows): map and agent values measured at the cpu scale
+    # (RESULTS.md section 3.4); the AQM row on the stall rule with parallel cuts 0.6 (the paper's single
+    # cut: cut_slack=0), its patience 6 x the calibration pass's 90th percentile of the longest stall:
+    # stable across calibration keys where the 0.5% quantile was not, and the larger closure gain on four
+    # models' development episodes (benchmarks/results/diagnose_closures_dev/NOTES.md); kappas (fixed rule,
+    # paper=cal) at the protocol's false-alarm rate. Learning curve: 2 development episodes per task at
+    # every checkpoint, in OGBench's environments (on a 2-core CPU about 8 s a point there, 33 s in MJX)
+    # 100 MJX episodes, 20,000 updates (the models of RESULTS.md section 1)
     'cpu': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
                 protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2,
                               curve_backend='ogbench')),
-    # antmaze-large navigate with 2 seeds in about an hour on a 2-core CPU: 4x the data, 2.5x the updates;
-    # the paper's single cut (parallel cuts were not measured on antmaze-large: RESULTS.md section 2.1)
-    'cpu-long': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0),
-                     protocol=dict(episodes=20, envs=64, calibrate='stall', curve_episodes=2,
+    # 4x the data (collected on the host), 2.5x the updates, the same rule. At the cpu scale the controller
+    # stalls on detours and replanning pays on two models in four; here on every model trained so far
+    # (RESULTS.md section 3.1)
+    'cpu-long': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
+                     protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2,
                                    curve_backend='ogbench'),
-                     collect_episodes=400),
+                     collect_episodes=400, collect_physics='mujoco'),
     # antmaze-giant navigate in under 2 h on a 2-core CPU (RESULTS.md section 2.3): 400 collected episodes of
     # 2,001 states, 150,000 updates; a map that fits the giant maze (delta 12, 512 keypoint slots: about 190
-    # keypoints, where delta 8 overflows 256); cpu-long's rule (stall at the 0.5% quantile, single cut)
+    # keypoints, where delta 8 overflows 256); the stall rule at the 0.5% quantile with the paper's single cut
     'cpu-giant': dict(map=dict(delta=12.0, max_keypoints=512), agent=dict(kappa=1.0, switch_radius=10.0),
                       protocol=dict(episodes=10, envs=64, calibrate='stall', curve_episodes=2,
                                     curve_backend='ogbench'),
@@ -118,3 +121,9 @@ def default(part: str, field: str):
 def collect_episodes(name: str) -> int:
     """Episodes a run of preset ``name`` collects when the user names no number."""
     return RUN[check(name)].get('collect_episodes', 100)
+
+
+def collect_physics(name: str) -> str:
+    """The physics a run of preset ``name`` collects its data in when the user names none: ``'mjx'`` or
+    ``'mujoco'`` (the host)."""
+    return RUN[check(name)].get('collect_physics', 'mjx')

@@ -87,19 +87,64 @@ def test_cpu_long_preset_scales_the_cpu_run_for_every_method():
 
     cpu, long = pipeline.RunConfig.preset('cpu', env='antmaze-large'), pipeline.RunConfig.preset('cpu-long',
                                                                                                env='antmaze-large')
-    # same networks and map, 2.5x the updates, 4x the data, OGBench-sized evaluation of 20 episodes per task
+    # same networks, map, rule and protocol, 2.5x the updates, 4x the data collected on the host
     assert (long.train.steps, cpu.train.steps) == (50_000, 20_000) and long.train.q_hidden == cpu.train.q_hidden
-    assert long.map == cpu.map and long.protocol.episodes == 20 and long.train.preset == 'cpu-long'
+    assert (long.map, long.agent, long.protocol) == (cpu.map, cpu.agent, cpu.protocol)
+    assert long.agent.cut_slack == 0.6 and long.protocol.stall_scale == 6.0 and long.train.preset == 'cpu-long'
     assert (pipeline.collect_episodes('cpu-long'), pipeline.collect_episodes('cpu')) == (400, 100)
+    assert (pipeline.collect_physics('cpu-long'), pipeline.collect_physics('cpu')) == ('mujoco', 'mjx')
     for name in methods.names():  # every registered method has the preset
         assert pipeline.RunConfig.preset('cpu-long', method=name).train.steps == 50_000, name
     with pytest.raises(ValueError, match="unknown run preset 'cpu-longer'"):
         pipeline.collect_episodes('cpu-longer')
-    # the CLI takes the preset's data size unless --collect-episodes says otherwise
+    with pytest.raises(ValueError, match="unknown run preset 'cpu-longer'"):
+        pipeline.collect_physics('cpu-longer')
+    # the CLI takes the preset's data size and physics unless --collect-episodes / --collect-physics say otherwise
     parser = cli.build_parser()
     assert cli.collect_episodes_of(parser.parse_args(['run', '--preset', 'cpu-long'])) == 400
     assert cli.collect_episodes_of(parser.parse_args(['compare', '--preset', 'cpu-long', '--collect-episodes', '7'])) == 7
     assert cli.collect_episodes_of(parser.parse_args(['run'])) == 100
+    physics = {(cmd, preset, env, given): cli.collect_physics_of(parser.parse_args(
+        [cmd, '--preset', preset, '--env', env] + (['--collect-physics', given] if given else [])))
+        for cmd in ('run', 'compare') for preset in ('cpu', 'cpu-long') for env in ('antmaze-medium', 'antmaze-teleport')
+        for given in (None, 'mjx', 'mujoco')}
+    for (cmd, preset, env, given), got in physics.items():
+        # what the user names; else the preset's, except MJX for the teleport portals the host does not model
+        want = given or ('mujoco' if preset == 'cpu-long' and env == 'antmaze-medium' else 'mjx')
+        assert got == want, (cmd, preset, env, given)
+    with pytest.raises(SystemExit):
+        parser.parse_args(['run', '--collect-physics', 'brax'])
+
+
+def test_run_and_compare_collect_in_the_physics_the_preset_or_the_user_names(monkeypatch, tmp_path):
+    from aqm_mjx import cli, run
+    from aqm_mjx.data import collect
+
+    class Stop(Exception):
+        pass
+
+    seen = []
+
+    def fake_collect(cfg, *a, **k):  # the data stage's request, then stop before minutes of collection
+        seen.append((cfg.physics, cfg.episodes))
+        raise Stop
+
+    monkeypatch.setattr(collect, 'collect', fake_collect)
+    runs = [(['run', '--preset', 'ci'], 'mjx'), (['run', '--preset', 'ci', '--collect-physics', 'mujoco'], 'mujoco'),
+            (['compare', '--preset', 'ci', '--methods', 'gcbc', '--seeds', '1', '--collect-physics', 'mujoco'],
+             'mujoco'),
+            (['run', '--preset', 'cpu-long', '--collect-episodes', '3'], 'mujoco'),
+            (['compare', '--preset', 'cpu-long', '--methods', 'gcbc', '--seeds', '1', '--collect-episodes', '3'],
+             'mujoco')]
+    for i, (argv, want) in enumerate(runs):
+        with pytest.raises(Stop):
+            cli.main(argv + ['--env', 'pointmaze-medium', '--out', str(tmp_path / f'r{i}')])
+        assert seen[-1][0] == want, argv
+    assert [e for _, e in seen] == [4, 4, 4, 3, 3]
+    # the data stage hands the physics to the collection
+    with pytest.raises(Stop):
+        run.data_stage('pointmaze-medium', str(tmp_path / 'd'), None, 2, 2, physics='mujoco')
+    assert seen[-1] == ('mujoco', 2)
 
 
 def test_cpu_giant_preset_is_cpu_long_with_more_updates_and_a_map_that_fits_the_giant_maze():
@@ -107,9 +152,11 @@ def test_cpu_giant_preset_is_cpu_long_with_more_updates_and_a_map_that_fits_the_
     from aqm_mjx.learn import methods
 
     long, giant = (pipeline.RunConfig.preset(p, env='antmaze-giant') for p in ('cpu-long', 'cpu-giant'))
-    # the networks, batch and budget rule of cpu-long, 3x its updates, the measured map and 10 episodes a task
+    # the networks and batch of cpu-long, 3x its updates, the measured map, the paper's single cut at the
+    # 0.5% quantile's patience, and 10 episodes a task
     assert (giant.train.steps, giant.train.batch_size) == (150_000, 256) and giant.train.q_hidden == long.train.q_hidden
-    assert (giant.map.delta, giant.map.max_keypoints) == (12.0, 512) and giant.agent == long.agent
+    assert (giant.map.delta, giant.map.max_keypoints) == (12.0, 512) and giant.agent.cut_slack == 0
+    assert (giant.agent.kappa, giant.agent.switch_radius) == (long.agent.kappa, long.agent.switch_radius)
     assert giant.protocol.calibrate == long.protocol.calibrate == 'stall' and giant.protocol.stall_scale == 0
     assert giant.protocol.episodes == 10 and giant.train.preset == 'cpu-giant'
     assert pipeline.collect_episodes('cpu-giant') == 400

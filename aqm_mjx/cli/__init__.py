@@ -17,7 +17,8 @@ import sys
 # are unaffected.
 os.environ.setdefault('TF_CPP_MIN_LOG_LEVEL', '3')
 
-from aqm_mjx.cli.commands import collect_episodes_of, enable_compile_cache, run_config  # noqa: E402,F401
+from aqm_mjx.cli.commands import (collect_episodes_of, collect_physics_of, enable_compile_cache,  # noqa: E402,F401
+                                  run_config)
 from aqm_mjx.cli.options import build_parser  # noqa: E402
 
 

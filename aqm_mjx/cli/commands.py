@@ -212,12 +212,13 @@ def cmd_run(a):
           f'output in {out}')
     if not a.one_program:
         run.run_stepwise(cfg, out, dataset=a.dataset, collect_episodes=collect_episodes_of(a),
-                         collect_batch=a.collect_batch, shift=a.shift)
+                         collect_batch=a.collect_batch, shift=a.shift, collect_physics=collect_physics_of(a))
         return 0
     if a.shift != 'base':
         raise ValueError('--one-program evaluates the base layout; drop --shift')
     with files.run_lock(out):  # one writer per run folder
-        path = run.data_stage(a.env, out, a.dataset, collect_episodes_of(a), a.collect_batch)
+        path = run.data_stage(a.env, out, a.dataset, collect_episodes_of(a), a.collect_batch,
+                              physics=collect_physics_of(a))
         data = assess.read_data(path, envs.make(a.env))
         res = run.run_one_program(cfg, data, a.seeds)
         files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
@@ -230,6 +231,15 @@ def collect_episodes_of(a) -> int:
     from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
 
     return pipeline.collect_episodes(a.preset) if a.collect_episodes is None else a.collect_episodes
+
+
+def collect_physics_of(a) -> str:
+    """--collect-physics, or the preset's (MJX where the host cannot model the maze: the teleport portals)."""
+    from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
+
+    if a.collect_physics is not None:
+        return a.collect_physics
+    return 'mjx' if 'teleport' in a.env else pipeline.collect_physics(a.preset)
 
 
 def cmd_evaluate(a):
@@ -264,6 +274,7 @@ def cmd_compare(a):
     out = a.out or os.path.join('runs', f'compare-{a.env}-{a.style}')
     compare.compare(a.env, a.methods, a.seeds, out, preset=a.preset, dataset=a.dataset, style=a.style,
                     collect_episodes=collect_episodes_of(a), collect_batch=a.collect_batch,
+                    collect_physics=collect_physics_of(a),
                     overrides=(a.set or []) + ([f'protocol.backend={a.backend}'] if a.backend else [])
                     + ([f'protocol.workers={a.workers}'] if a.workers is not None else []),
                     shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed)

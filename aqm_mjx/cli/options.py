@@ -48,8 +48,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
     r.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default=presets.DEFAULT, choices=presets.names(),
-                   help='every default of the run: cpu (minutes on a 2-core CPU), cpu-long (1-1.5 h: 400 '
-                        'episodes, 50,000 updates), cpu-giant (antmaze-giant in under 2 h: 400 episodes of 2,001 '
+                   help='every default of the run: cpu (minutes on a 2-core CPU: 100 MJX episodes, 20,000 '
+                        'updates), cpu-long (400 episodes collected on the host, 50,000 updates: 3 + 11 min on '
+                        'antmaze-medium), '
+                        'cpu-giant (antmaze-giant in under 2 h: 400 episodes of 2,001 '
                         'states, 150,000 updates, delta 12), paper (the paper\'s sizes; for a GPU), ci (the wiring in a few minutes '
                         'of compiling on a CPU, for tests; its success rates mean nothing)')
     r.add_argument('--set', action='append', metavar='SECTION.FIELD=VALUE',
@@ -60,8 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--collect-episodes', type=int, default=None,
                    help="navigate episodes to collect (1001 states each, 2001 on giant; default: the preset's: 100, "
                         "400 for cpu-long and cpu-giant, 4 for ci)")
-    r.add_argument('--collect-batch', type=int, default=55,
-                   help='episodes collected side by side (default: the 100 + 10 of the default run in 2 calls)')
+    r.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
+    r.add_argument('--collect-physics', default=None, choices=['mjx', 'mujoco'],
+                   help="physics of the collection: 'mjx', or 'mujoco' (MuJoCo on the host, 6-8x faster on a CPU); "
+                        "default the preset's: mujoco for cpu-long, mjx otherwise (and for antmaze-teleport)")
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")
     r.add_argument('--seed', type=int, default=0, help='run seed: PRNGKey(seed) is split into train, map, evaluation')
     r.add_argument('--one-program', action='store_true',
@@ -187,6 +191,8 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument('--collect-episodes', type=int, default=None,
                    help="episodes to collect (default: the preset's, 100, or 400 for cpu-long and cpu-giant)")
     k.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
+    k.add_argument('--collect-physics', default=None, choices=['mjx', 'mujoco'],
+                   help="physics of the collection (default the preset's: mujoco for cpu-long, mjx otherwise)")
     k.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")
     k.add_argument('--backend', default=None, choices=['mjx', 'ogbench'],
                    help="physics of the evaluation: 'mjx' (default) or 'ogbench' (OGBench's own environments on "
