@@ -235,11 +235,11 @@ def collect_episodes_of(a) -> int:
 
 def collect_physics_of(a) -> str:
     """--collect-physics, or the preset's (MJX where the host cannot model the maze: the teleport portals)."""
-    from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import envs, pipeline  # pylint: disable=import-outside-toplevel
 
     if a.collect_physics is not None:
         return a.collect_physics
-    return 'mjx' if 'teleport' in a.env else pipeline.collect_physics(a.preset)
+    return 'mjx' if envs.parse_name(a.env)[1] == 'teleport' else pipeline.collect_physics(a.preset)
 
 
 def cmd_evaluate(a):
