@@ -36,30 +36,30 @@ LOOP = {
 # A run's sections beside training. 'collect_episodes' is the data a run collects when no --dataset or
 # --collect-episodes is given (100 where a row does not say), 'collect_physics' the physics it collects in
 # ('mjx' where a row does not say; 'mujoco': MuJoCo's C library on the host, 6-8x faster on a CPU).
+
+# The replanning rule of the cpu and cpu-long rows, written once: map and agent values measured at the cpu
+# scale (RESULTS.md section 3.4); the AQM row on the stall rule with parallel cuts 0.6 (the paper's single
+# cut: cut_slack=0), its patience 6 x the calibration pass's 90th percentile of the longest stall: stable
+# across calibration keys where the 0.5% quantile was not, and the larger closure gain on four models'
+# development episodes (benchmarks/results/diagnose_closures_dev/NOTES.md); kappas (fixed rule, paper=cal)
+# at the protocol's false-alarm rate. Learning curve: 2 development episodes per task at every checkpoint,
+# in OGBench's environments (on a 2-core CPU about 8 s a point there, 33 s in MJX)
+_CPU_RULE = dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
+                 protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2,
+                               curve_backend='ogbench'))
+
 RUN = {
     # the wiring, not the skill: 4 collected episodes, 200 updates, 60-step episodes (compiling dominates)
     'ci': dict(map=dict(delta=0.5, max_keypoints=32, candidates=400),
                agent=dict(kappa=0.0, switch_radius=0.6),
                protocol=dict(episodes=2, horizon=60, envs=64, calibration_episodes=20),
                collect_episodes=4),
-    # the replanning rule (the cpu and cpu-long rows): map and agent values measured at the cpu scale
-    # (RESULTS.md section 3.4); the AQM row on the stall rule with parallel cuts 0.6 (the paper's single
-    # cut: cut_slack=0), its patience 6 x the calibration pass's 90th percentile of the longest stall:
-    # stable across calibration keys where the 0.5% quantile was not, and the larger closure gain on four
-    # models' development episodes (benchmarks/results/diagnose_closures_dev/NOTES.md); kappas (fixed rule,
-    # paper=cal) at the protocol's false-alarm rate. Learning curve: 2 development episodes per task at
-    # every checkpoint, in OGBench's environments (on a 2-core CPU about 8 s a point there, 33 s in MJX)
-    # 100 MJX episodes, 20,000 updates (the models of RESULTS.md section 1)
-    'cpu': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
-                protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2,
-                              curve_backend='ogbench')),
+    # 100 MJX episodes, 20,000 updates (the models of RESULTS.md section 1), the cpu rule
+    'cpu': dict(_CPU_RULE),
     # 4x the data (collected on the host), 2.5x the updates, the same rule. At the cpu scale the controller
     # stalls on detours and replanning pays on two models in four; here on every model trained so far
     # (RESULTS.md section 3.1)
-    'cpu-long': dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
-                     protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2,
-                                   curve_backend='ogbench'),
-                     collect_episodes=400, collect_physics='mujoco'),
+    'cpu-long': dict(_CPU_RULE, collect_episodes=400, collect_physics='mujoco'),
     # antmaze-giant navigate in under 2 h on a 2-core CPU (RESULTS.md section 2.3): 400 collected episodes of
     # 2,001 states, 150,000 updates; a map that fits the giant maze (delta 12, 512 keypoint slots: about 190
     # keypoints, where delta 8 overflows 256); the stall rule at the 0.5% quantile with the paper's single cut
