@@ -15,7 +15,7 @@ which a row may change. A method's config adds only its own sizes to :func:`loop
 
 from __future__ import annotations
 
-DEFAULT = 'cpu'  # the preset whose values are the configs' dataclass defaults (and every command's)
+DEFAULT = 'cpu-long'  # the preset whose values are the configs' dataclass defaults (and every command's)
 
 # The training loop, once for every method: updates, batch, updates per jitted call, metric lines and
 # checkpoints.

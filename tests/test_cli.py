@@ -82,7 +82,7 @@ def test_run_config_overrides_name_the_problem():
 def test_cpu_long_preset_scales_the_cpu_run_for_every_method():
     import pytest
 
-    from aqm_mjx import cli, pipeline
+    from aqm_mjx import cli, pipeline, presets
     from aqm_mjx.learn import methods
 
     cpu, long = pipeline.RunConfig.preset('cpu', env='antmaze-large'), pipeline.RunConfig.preset('cpu-long',
@@ -103,7 +103,10 @@ def test_cpu_long_preset_scales_the_cpu_run_for_every_method():
     parser = cli.build_parser()
     assert cli.collect_episodes_of(parser.parse_args(['run', '--preset', 'cpu-long'])) == 400
     assert cli.collect_episodes_of(parser.parse_args(['compare', '--preset', 'cpu-long', '--collect-episodes', '7'])) == 7
-    assert cli.collect_episodes_of(parser.parse_args(['run'])) == 100
+    # cpu-long is the default preset: a bare run collects its 400 episodes on the host, --preset cpu its 100 in MJX
+    assert presets.DEFAULT == 'cpu-long' and cli.collect_episodes_of(parser.parse_args(['run'])) == 400
+    assert cli.collect_physics_of(parser.parse_args(['run'])) == 'mujoco'
+    assert cli.collect_episodes_of(parser.parse_args(['run', '--preset', 'cpu'])) == 100
     physics = {(cmd, preset, env, given): cli.collect_physics_of(parser.parse_args(
         [cmd, '--preset', preset, '--env', env] + (['--collect-physics', given] if given else [])))
         for cmd in ('run', 'compare') for preset in ('cpu', 'cpu-long') for env in ('antmaze-medium', 'antmaze-teleport')

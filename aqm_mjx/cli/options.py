@@ -49,8 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default=presets.DEFAULT, choices=presets.names(),
                    help='every default of the run: cpu (minutes on a 2-core CPU: 100 MJX episodes, 20,000 '
-                        'updates), cpu-long (400 episodes collected on the host, 50,000 updates: 3 + 11 min on '
-                        'antmaze-medium), '
+                        'updates), cpu-long (the default: 400 episodes collected on the host, 50,000 updates: 3 + 11 '
+                        'min on antmaze-medium), '
                         'cpu-giant (antmaze-giant in under 2 h: 400 episodes of 2,001 '
                         'states, 150,000 updates, delta 12), paper (the paper\'s sizes; for a GPU), ci (the wiring in a few minutes '
                         'of compiling on a CPU, for tests; its success rates mean nothing)')
@@ -129,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='registered method (aqm-mjx methods; default aqm)')
     t.add_argument('--preset', default=None, choices=presets.names(),
                    help='cpu: minutes on a 2-core CPU; cpu-long: 50,000 updates; cpu-giant: 150,000; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
-                        'ci: smoke tests (default cpu)')
+                        f'ci: smoke tests (default {presets.DEFAULT})')
     t.add_argument('--set', action='append', metavar='FIELD=VALUE',
                    help='override a training config field, e.g. --set batch_size=512 --set q_hidden=512,512 (repeatable)')
     t.add_argument('--steps', type=int, default=None, help='total updates (overrides the preset; extends a resumed run)')
