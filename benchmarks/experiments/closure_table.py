@@ -4,6 +4,9 @@
         --ablations no-pruning paper=1 paper=cal --backend ogbench --out OUT
     python benchmarks/experiments/closure_table.py OUT [--rows aqm no-pruning paper=1 paper=cal]
 
+``OUT`` is the folder of several checkpoints (one sub-folder each) or of one (its ``results.json`` alone;
+the model is labelled ``--label``, default the checkpoint folder's name).
+
 Per model (checkpoint) and row: success on the unchanged maze and on the mean of the closed
 corridors (95% Wilson intervals over the pooled episodes), the closure gain over no pruning, and
 the closure share (closure success / unchanged-maze success). The gain's and the share's 95%
@@ -73,8 +76,14 @@ def main():
     p.add_argument('folder', help='an `aqm-mjx evaluate` output folder with one sub-folder per checkpoint')
     p.add_argument('--rows', nargs='+', default=['aqm', 'no-pruning', 'paper=1', 'paper=cal'])
     p.add_argument('--json', default=None)
+    p.add_argument('--label', default=None, help="the model's name when OUT holds one checkpoint's evaluation")
     a = p.parse_args()
     top = json.load(open(os.path.join(a.folder, 'results.json')))
+    single = 'checkpoints' not in top  # one checkpoint: its results.json is the whole folder
+    if single:
+        label = a.label or os.path.basename(os.path.normpath(top['checkpoint']))
+        top = dict(top, checkpoints=[label], episodes=top['config']['protocol']['episodes'],
+                   split=top['config']['protocol'].get('split'))
     n = int(top['episodes'])
     rng = np.random.default_rng(0)
     table, lines = {}, []
@@ -83,7 +92,8 @@ def main():
                  '| gain over no pruning | share (closures / base) |')
     lines.append('|' + '---|' * (8 + len(closed)))
     for label in sorted(top['checkpoints'], key=lambda k: (not k.endswith(':train'), k)):  # README's model first
-        sub = next(d for d in (label, label.replace(':', '_')) if os.path.isdir(os.path.join(a.folder, d)))
+        sub = '' if single else next(d for d in (label, label.replace(':', '_'))
+                                      if os.path.isdir(os.path.join(a.folder, d)))
         res = json.load(open(os.path.join(a.folder, sub, 'results.json')))
         cal = res.get('calibration') or {}
         table[label] = dict(calibration=cal, rows=model_rows(res, a.rows, n, rng))

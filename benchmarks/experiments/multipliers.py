@@ -3,7 +3,7 @@ runs' ``metrics.jsonl``: AQM's ``qrl/lambda`` (lambda itself trained) and QRL's 
 (OGBench's ``exp(log_lambda)``), beside the constraint's mean squared excess relu(d(s, s') - 1)^2,
 whose bound is epsilon^2 = 0.05.
 
-    python benchmarks/experiments/multipliers.py checkpoints/aqm-antmaze-medium-navigate-cpu \
+    python benchmarks/experiments/multipliers.py runs/antmaze-medium-cpu/train \
         runs/nav_report/train/qrl/seed_1 --out benchmarks/results/multipliers/multipliers.json
 
 AQM logs the constraint as ``lambda/violation`` = mean relu(d - 1)^2 - epsilon^2; QRL as
