@@ -79,7 +79,7 @@ def main():
     p.add_argument('--label', default=None, help="the model's name when OUT holds one checkpoint's evaluation")
     a = p.parse_args()
     top = json.load(open(os.path.join(a.folder, 'results.json')))
-    single = 'checkpoints' not in top  # one checkpoint: its results.json is the whole folder
+    single = None if 'checkpoints' in top else top  # one checkpoint: its results.json is the whole folder
     if single:
         label = a.label or os.path.basename(os.path.normpath(top['checkpoint']))
         top = dict(top, checkpoints=[label], episodes=top['config']['protocol']['episodes'],
@@ -92,9 +92,11 @@ def main():
                  '| gain over no pruning | share (closures / base) |')
     lines.append('|' + '---|' * (8 + len(closed)))
     for label in sorted(top['checkpoints'], key=lambda k: (not k.endswith(':train'), k)):  # README's model first
-        sub = '' if single else next(d for d in (label, label.replace(':', '_'))
-                                      if os.path.isdir(os.path.join(a.folder, d)))
-        res = json.load(open(os.path.join(a.folder, sub, 'results.json')))
+        if single:
+            res = single  # already read
+        else:
+            sub = next(d for d in (label, label.replace(':', '_')) if os.path.isdir(os.path.join(a.folder, d)))
+            res = json.load(open(os.path.join(a.folder, sub, 'results.json')))
         cal = res.get('calibration') or {}
         table[label] = dict(calibration=cal, rows=model_rows(res, a.rows, n, rng))
         for r in table[label]['rows']:
