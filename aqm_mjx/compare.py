@@ -198,6 +198,16 @@ _SHARED = ('data_sha256', 'env', 'style', 'preset', 'seeds', 'eval_seed', 'split
            'variants')
 
 
+# shared overrides that choose how a comparison runs, not what it computes: the OGBench backend's worker
+# processes step the same seeded environments whatever their number (the policy sees the whole batch)
+_EXECUTION = ('protocol.workers',)
+
+
+def _settings(overrides: Sequence[str]) -> list[str]:
+    """The shared overrides (no ``METHOD:``) that change results: all but :data:`_EXECUTION`'s, sorted."""
+    return sorted(o for o in overrides if _scope(o) is None and o.split('=', 1)[0] not in _EXECUTION)
+
+
 def _draw_curves(out: str, folders: dict, env_name: str, preset: str) -> None:
     """``out/curves.png``: success against updates of every method so far, a line per seed (the
     learning-curve points in each seed folder's ``metrics.jsonl``); nothing without them."""
@@ -259,7 +269,8 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     For rows that several sessions (or machines) computed on the same data and episodes. Every folder's
     ``results.json`` must agree on the data's SHA-256, the environment, style, preset, seeds, episode key
     (``eval_seed``), layout, tasks and episodes, and on the overrides given to every method (a
-    ``METHOD:`` override travels with its method); a method may appear in one folder only. Writes
+    ``METHOD:`` override travels with its method; ``protocol.workers``, how many processes stepped
+    OGBench's environments, may differ); a method may appear in one folder only. Writes
     ``OUT/results.json`` (with ``merged_from``), ``OUT/table.md`` and ``OUT/success.png`` holding
     ``OUT``'s lock (:func:`aqm_mjx.files.run_lock`); the inputs are only read: an ``OUT`` that is,
     lies inside or links into an input (or holds one) is refused before anything is written. Returns
@@ -282,13 +293,13 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
                          'files would be replaced)')
     parts = [_read_comparison(f) for f in folders]
     first = parts[0]
-    shared = [o for o in first.get('overrides', []) if _scope(o) is None]
+    shared = [o for o in first.get('overrides', []) if _scope(o) is None]  # the first folder's, workers too
     for f, r in zip(folders, parts):
         if not r.get('data_sha256'):
             raise ValueError(f'{f}/results.json records no data SHA-256 (written before aqm-mjx recorded it): '
                              'its data cannot be shown to be the others\'')
         diff = [k for k in _SHARED if r.get(k) != first.get(k)]
-        if sorted(o for o in r.get('overrides', []) if _scope(o) is None) != sorted(shared):
+        if _settings(r.get('overrides', [])) != _settings(shared):
             diff.append('overrides')
         if diff:
             raise ValueError(f'{f} and {folders[0]} differ in ' + '; '.join(

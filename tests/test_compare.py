@@ -317,6 +317,15 @@ def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
     _finished(fewer, {'saw': [(0.5, 0.5), (0.5, 0.5)]}, overrides=('protocol.episodes=5',), episodes=5)
     with pytest.raises(ValueError, match='differ in episodes.*overrides'):
         compare.merge([a, fewer], str(tmp_path / 'x'), **QUIET)
+    # how many processes stepped OGBench's environments is not a setting of the numbers; the backend is
+    workers = str(tmp_path / 'workers')
+    _finished(workers, {'gcbc': [(0.0, 0.0), (0.0, 0.1)]}, overrides=('protocol.workers=12', 'protocol.episodes=10'))
+    assert compare.merge([a, workers], str(tmp_path / 'w'), **QUIET)['overrides'] == ['protocol.episodes=10',
+                                                                                      'qrl:protocol.ablations=flat']
+    backend = str(tmp_path / 'backend')
+    _finished(backend, {'gcbc': [(0.0, 0.0), (0.0, 0.1)]}, overrides=('protocol.backend=ogbench', 'protocol.episodes=10'))
+    with pytest.raises(ValueError, match='differ in overrides'):
+        compare.merge([a, backend], str(tmp_path / 'x'), **QUIET)
     again = str(tmp_path / 'again')
     _finished(again, {'qrl': [(0.5, 0.5), (0.5, 0.5)]})
     with pytest.raises(ValueError, match="method 'qrl' is in both"):
