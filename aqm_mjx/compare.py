@@ -294,12 +294,13 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     parts = [_read_comparison(f) for f in folders]
     first = parts[0]
     shared = [o for o in first.get('overrides', []) if _scope(o) is None]  # the first folder's, workers too
+    settings = _settings(shared)
     for f, r in zip(folders, parts):
         if not r.get('data_sha256'):
             raise ValueError(f'{f}/results.json records no data SHA-256 (written before aqm-mjx recorded it): '
                              'its data cannot be shown to be the others\'')
         diff = [k for k in _SHARED if r.get(k) != first.get(k)]
-        if _settings(r.get('overrides', [])) != _settings(shared):
+        if _settings(r.get('overrides', [])) != settings:
             diff.append('overrides')
         if diff:
             raise ValueError(f'{f} and {folders[0]} differ in ' + '; '.join(
