@@ -150,16 +150,23 @@ def aggregate(per_method: dict[str, dict], seeds: Sequence[int]) -> dict:
             row = {}
             for v in res['variants']:
                 cells = [res['summary'][f'{lab}/{agent}'][v] for lab in labels]
-                seed_means = [c['mean'] for c in cells]
-                n = len(cells) * len(tasks) * episodes
-                wins = round(sum(seed_means) * len(tasks) * episodes)
-                mean = sum(seed_means) / len(seed_means)
-                lo, hi = stats.seed_interval(seed_means)
-                row[v] = dict(mean=mean, seed_means=seed_means, seed_ci95=None if math.isnan(lo) else [lo, hi],
-                              episodes_ci95=list(stats.wilson(wins, n)), episodes=n,
-                              **{f'task_{t}': sum(c[f'task_{t}'] for c in cells) / len(cells) for t in tasks})
+                row[v] = _cell([c['mean'] for c in cells],
+                               {t: sum(c[f'task_{t}'] for c in cells) / len(cells) for t in tasks}, episodes)
             rows[name] = row
     return rows
+
+
+def _cell(seed_means: Sequence[float], task_means: dict, episodes: int) -> dict:
+    """One row's numbers on one layout: ``seed_means`` (one success rate a seed, each over ``len(task_means)``
+    tasks x ``episodes``), ``task_means`` ({task: mean over those seeds}); the mean, the 95% t interval
+    over seeds and the Wilson interval of the pooled episodes."""
+    seed_means = [float(x) for x in seed_means]
+    n = len(seed_means) * len(task_means) * episodes
+    wins = round(sum(seed_means) * len(task_means) * episodes)
+    lo, hi = stats.seed_interval(seed_means)
+    return dict(mean=sum(seed_means) / len(seed_means), seed_means=seed_means,
+                seed_ci95=None if math.isnan(lo) else [lo, hi], episodes_ci95=list(stats.wilson(wins, n)),
+                episodes=n, **{f'task_{t}': m for t, m in task_means.items()})
 
 
 def _write_tables(out, spec, per_method, seed_ids, cfgs, log) -> dict:
@@ -193,8 +200,8 @@ def _write(out: str, result: dict, log) -> None:
 
 
 # what two comparison folders must share for their rows to sit in one table: the data (by SHA-256),
-# the request, and the episodes
-_SHARED = ('data_sha256', 'env', 'style', 'preset', 'seeds', 'eval_seed', 'split', 'shift', 'tasks', 'episodes',
+# the request, and the episodes (the seeds are checked per method: every row of a table over the same seeds)
+_SHARED = ('data_sha256', 'env', 'style', 'preset', 'eval_seed', 'split', 'shift', 'tasks', 'episodes',
            'variants')
 
 
@@ -270,8 +277,11 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     ``results.json`` must agree on the data's SHA-256, the environment, style, preset, seeds, episode key
     (``eval_seed``), layout, tasks and episodes, and on the overrides given to every method (a
     ``METHOD:`` override travels with its method; ``protocol.workers``, how many processes stepped
-    OGBench's environments, may differ); a method may appear in one folder only. Writes
-    ``OUT/results.json`` (with ``merged_from``), ``OUT/table.md`` and ``OUT/success.png`` holding
+    OGBench's environments, may differ). A method may appear in several folders when each holds other
+    seeds of it, trained and evaluated alike (the same config but its first seed, the same ``METHOD:``
+    overrides and rows): its rows are pooled over their seeds (:func:`_pooled`). Every method must end
+    with the same seeds. Writes ``OUT/results.json`` (with ``merged_from``: a method's folder, or the
+    list of its folders where its seeds were pooled), ``OUT/table.md`` and ``OUT/success.png`` holding
     ``OUT``'s lock (:func:`aqm_mjx.files.run_lock`); the inputs are only read: an ``OUT`` that is,
     lies inside or links into an input (or holds one) is refused before anything is written. Returns
     the merged comparison.
@@ -306,25 +316,97 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
             raise ValueError(f'{f} and {folders[0]} differ in ' + '; '.join(
                 f'{k} ({r.get(k)!r} against {first.get(k)!r})' for k in diff) + ': their rows would not share data '
                 'and episodes')
-    rows, configs, names, scoped, owner = {}, {}, [], [], {}
+    held = {}  # method -> [(folder, its results)]: one folder, or several holding other seeds of it
     for f, r in zip(folders, parts):
         for m in r['methods']:
-            if m in owner:
-                raise ValueError(f'method {m!r} is in both {owner[m]} and {f}: keep one (merge takes each method '
-                                 'from one folder)')
-            owner[m] = f
-            names.append(m)
-            configs[m] = r['configs'][m]
-            scoped += [o for o in r.get('overrides', []) if _scope(o) == m]
-            # the method's row, then its ablations' (results.json may hold the rows in another order)
-            rows.update({k: v for k, v in sorted(r['rows'].items(), key=lambda kv: kv[0] != m)
-                         if k.split('/', 1)[0] == m})
-    result = dict(first, methods=names, rows=rows, configs=configs,
-                  overrides=shared + scoped,
-                  merged_from={m: os.path.abspath(f) for m, f in owner.items()})
+            held.setdefault(m, []).append((f, r))
+    for m, hs in held.items():
+        _check_seeds_of_one_method(m, hs)
+    names = list(held)
+    union = {m: sorted(s for _, r in hs for s in r['seeds']) for m, hs in held.items()}
+    seeds = union[names[0]]
+    if any(union[m] != seeds for m in names):
+        raise ValueError('the methods cover different seeds (' + '; '.join(f'{m}: {union[m]}' for m in names)
+                         + '): a table holds one set of seeds; train the missing ones into another folder with '
+                         'the same command and --seeds N --seed FIRST, then merge that folder too')
+    rows, configs, scoped = {}, {}, []
+    for m, hs in held.items():
+        r0 = hs[0][1]
+        configs[m] = r0['configs'][m]
+        scoped += [o for o in r0.get('overrides', []) if _scope(o) == m]
+        # the method's row, then its ablations' (results.json may hold the rows in another order)
+        mine = [k for k in sorted(r0['rows'], key=lambda k: k != m) if k.split('/', 1)[0] == m]
+        for k in mine:
+            rows[k] = r0['rows'][k] if len(hs) == 1 else {
+                v: _pooled([(r['seeds'], r['rows'][k][v]) for _, r in hs], r0['tasks'], int(r0['episodes']))
+                for v in r0['variants']}
+    origin = {m: os.path.abspath(hs[0][0]) if len(hs) == 1 else [os.path.abspath(f) for f, _ in hs]
+              for m, hs in held.items()}
+    result = dict(first, methods=names, rows=rows, configs=configs, seeds=seeds, overrides=shared + scoped,
+                  merged_from=origin)
     with files.run_lock(out):  # one writer per folder, as compare
         _write(out, result, log)
     return result
+
+
+# what may differ between two folders' configs of one method whose seeds merge joins: the first seed, and
+# how many processes stepped OGBench's environments
+_PER_FOLDER = ('train.seed', 'protocol.workers')
+
+
+def _flat(d: dict, prefix: str = '') -> dict:
+    """``{'a': {'b': 1}}`` as ``{'a.b': 1}``."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f'{prefix}{k}.'))
+        else:
+            out[f'{prefix}{k}'] = v
+    return out
+
+
+def _check_seeds_of_one_method(m: str, hs: list) -> None:
+    """A method in several folders ``hs`` ([(folder, results)]) must hold other seeds in each, with the
+    same config (but :data:`_PER_FOLDER`), ``METHOD:`` overrides and rows; the fault named otherwise."""
+    if len(hs) == 1:
+        return
+    seen = {}
+    for f, r in hs:
+        for s in r['seeds']:
+            if s in seen:
+                raise ValueError(f'method {m!r} has seed {s} in both {seen[s]} and {f}: keep one (merge takes each '
+                                 'seed of a method from one folder)')
+            seen[s] = f
+    f0, r0 = hs[0]
+    c0 = {k: v for k, v in _flat(r0['configs'][m]).items() if k not in _PER_FOLDER}
+    o0 = sorted(o for o in r0.get('overrides', []) if _scope(o) == m)
+    k0 = sorted(k for k in r0['rows'] if k.split('/', 1)[0] == m)
+    for f, r in hs[1:]:
+        c = {k: v for k, v in _flat(r['configs'][m]).items() if k not in _PER_FOLDER}
+        diff = sorted(k for k in set(c0) | set(c) if c0.get(k, '(absent)') != c.get(k, '(absent)'))
+        o = sorted(o for o in r.get('overrides', []) if _scope(o) == m)
+        if o != o0:
+            diff.append(f'its overrides ({o} against {o0})')
+        k = sorted(k for k in r['rows'] if k.split('/', 1)[0] == m)
+        if k != k0:
+            diff.append(f'its rows ({k} against {k0})')
+        if diff:
+            raise ValueError(f'method {m!r} in {f} and {f0} differs in ' + ', '.join(diff[:8])
+                             + (f' and {len(diff) - 8} more' if len(diff) > 8 else '')
+                             + ': seeds of one method merge only when trained and evaluated alike')
+        bad = [k for k in k0 for v in r['variants'] if len(r['rows'][k][v]['seed_means']) != len(r['seeds'])]
+        if bad:
+            raise ValueError(f'{f}/results.json: rows {bad} hold another number of seed means than its '
+                             f'{len(r["seeds"])} seeds')
+
+
+def _pooled(cells: list, tasks: Sequence[int], episodes: int) -> dict:
+    """One cell from one method's cells in several folders, ``[(seeds, cell)]``: seed means in seed order,
+    task means weighted by each folder's seeds, the intervals of all of them (:func:`_cell`)."""
+    by_seed = sorted((s, x) for seeds, c in cells for s, x in zip(seeds, c['seed_means']))
+    count = sum(len(seeds) for seeds, _ in cells)
+    return _cell([x for _, x in by_seed],
+                 {t: sum(len(seeds) * c[f'task_{t}'] for seeds, c in cells) / count for t in tasks}, episodes)
 
 
 def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, preset: str = presets.DEFAULT,

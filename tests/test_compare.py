@@ -268,16 +268,19 @@ def test_the_explore_rule_reaches_every_entry_point(tmp_path, monkeypatch):
     assert json.load(open(os.path.join(out, 'config.json')))['config']['policy_goals'] == 'random'
 
 
-def _finished(folder, methods_rates, sha='ab' * 32, overrides=('protocol.episodes=10',), episodes=10):
-    """A compare folder's results.json as compare writes it: rows from per-seed tables via aggregate."""
+def _finished(folder, methods_rates, sha='ab' * 32, overrides=('protocol.episodes=10',), episodes=10, seeds=(0, 1),
+              configs=None):
+    """A compare folder's results.json as compare writes it: rows from per-seed tables via aggregate
+    (``methods_rates[m]``: (task 1, task 2) success of each seed in ``seeds``)."""
     per = {m: dict(episodes=episodes, tasks=[1, 2], variants=['base'],
-                   summary={f'{m}:seed_{s}/{"aqm" if m == "aqm" else "flat"}':
+                   summary={f'{lab}/{"aqm" if m == "aqm" else "flat"}':
                             {'base': {'task_1': r[0], 'task_2': r[1], 'mean': (r[0] + r[1]) / 2}}
-                            for s, r in enumerate(rates)}) for m, rates in methods_rates.items()}
-    result = dict(env='antmaze-medium', style='navigate', preset='cpu', seeds=[0, 1], eval_seed=0, shift='base',
+                            for lab, r in zip(assess.checkpoint_labels([f'seed_{s}' for s in seeds], [m] * len(seeds)),
+                                              rates)}) for m, rates in methods_rates.items()}
+    result = dict(env='antmaze-medium', style='navigate', preset='cpu', seeds=list(seeds), eval_seed=0, shift='base',
                   overrides=list(overrides), dataset=None, data_sha256=sha, methods=list(methods_rates), tasks=[1, 2],
-                  episodes=episodes, variants=['base'], rows=compare.aggregate(per, [0, 1]),
-                  configs={m: {'method': m} for m in methods_rates})
+                  episodes=episodes, variants=['base'], rows=compare.aggregate(per, list(seeds)),
+                  configs=configs or {m: {'method': m, 'train': {'seed': seeds[0]}} for m in methods_rates})
     os.makedirs(folder)
     with open(os.path.join(folder, 'results.json'), 'w') as f:
         json.dump(result, f, sort_keys=True)  # as files.write_json: rows alphabetical, not in method order
@@ -328,7 +331,7 @@ def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
         compare.merge([a, backend], str(tmp_path / 'x'), **QUIET)
     again = str(tmp_path / 'again')
     _finished(again, {'qrl': [(0.5, 0.5), (0.5, 0.5)]})
-    with pytest.raises(ValueError, match="method 'qrl' is in both"):
+    with pytest.raises(ValueError, match="method 'qrl' has seed 0 in both"):
         compare.merge([a, again], str(tmp_path / 'x'), **QUIET)
     with pytest.raises(ValueError, match='is or lies inside the input'):
         compare.merge([a, b], a, **QUIET)
@@ -356,6 +359,54 @@ def test_merge_puts_rows_of_the_same_data_and_episodes_in_one_table(tmp_path):
     finally:
         holder.kill()
         holder.wait()
+
+
+def test_merge_pools_the_seeds_of_one_method_from_two_folders(tmp_path):
+    """Seeds 0-1 of aqm and gcbc in one folder, seed 2 of both (the same command, --seeds 1 --seed 2) in
+    another, gas's seeds 0-2 in a third: one table over seeds 0-2, aqm's numbers those of one folder
+    holding all three seeds; other configs, shared seeds or missing seeds are refused, naming them."""
+    a, b, c = (str(tmp_path / n) for n in ('a', 'b', 'c'))
+    aqm = [(0.9, 0.7), (1.0, 0.8), (0.5, 0.1)]  # (task 1, task 2) of seeds 0, 1, 2
+    gcbc = [(0.0, 0.0), (0.1, 0.1), (0.3, 0.0)]
+    _finished(a, {'aqm': aqm[:2], 'gcbc': gcbc[:2]}, seeds=(0, 1))
+    _finished(b, {'aqm': aqm[2:], 'gcbc': gcbc[2:]}, seeds=(2,), overrides=('protocol.episodes=10', 'protocol.workers=4'))
+    _finished(c, {'gas': [(0.0, 0.1)] * 3}, seeds=(0, 1, 2))
+    whole = _finished(str(tmp_path / 'whole'), {'aqm': aqm, 'gcbc': gcbc}, seeds=(0, 1, 2))
+    merged = compare.merge([a, c, b], str(tmp_path / 'out'), **QUIET)
+    assert merged['seeds'] == [0, 1, 2] and merged['methods'] == ['aqm', 'gcbc', 'gas']
+    for m in ('aqm', 'gcbc'):  # pooled exactly as one folder of the three seeds would hold them
+        got, want = merged['rows'][m]['base'], whole['rows'][m]['base']
+        assert got.keys() == want.keys()
+        for k in want:
+            assert got[k] == (pytest.approx(want[k]) if not isinstance(want[k], list)
+                              else [pytest.approx(x) for x in want[k]]), (m, k)
+    # by hand: aqm's seed means 0.8, 0.9, 0.3; task 1 (0.9 + 1.0 + 0.5) / 3; 16 + 18 + 6 wins of 60 episodes
+    g = merged['rows']['aqm']['base']
+    assert g['seed_means'] == [pytest.approx(0.8), pytest.approx(0.9), pytest.approx(0.3)]
+    assert g['task_1'] == pytest.approx(0.8) and g['episodes'] == 60
+    assert g['episodes_ci95'] == [pytest.approx(x) for x in stats.wilson(16 + 18 + 6, 60)]
+    assert merged['merged_from']['aqm'] == [os.path.abspath(a), os.path.abspath(b)]
+    assert merged['merged_from']['gas'] == os.path.abspath(c)
+    assert '| aqm | 80 | 53 | **67** |' in open(tmp_path / 'out' / 'table.md').read()
+    # a method with seeds the others lack
+    with pytest.raises(ValueError, match=r"cover different seeds \(aqm: \[0, 1\]; gcbc: \[0, 1\]; gas: \[0, 1, 2\]"):
+        compare.merge([a, c], str(tmp_path / 'x'), **QUIET)
+    # the same seed twice
+    twice = str(tmp_path / 'twice')
+    _finished(twice, {'aqm': aqm[1:]}, seeds=(1, 2))
+    with pytest.raises(ValueError, match="method 'aqm' has seed 1 in both"):
+        compare.merge([a, twice], str(tmp_path / 'x'), **QUIET)
+    # seeds trained otherwise: another config value or another METHOD: override
+    other = str(tmp_path / 'other')
+    _finished(other, {'aqm': aqm[2:], 'gcbc': gcbc[2:]}, seeds=(2,),
+              configs={'aqm': {'method': 'aqm', 'train': {'seed': 2, 'steps': 5}}, 'gcbc': {'method': 'gcbc', 'train': {'seed': 2}}})
+    with pytest.raises(ValueError, match="method 'aqm' in .*other and .*a differs in train.steps"):
+        compare.merge([a, other], str(tmp_path / 'x'), **QUIET)
+    scoped = str(tmp_path / 'scoped')
+    _finished(scoped, {'aqm': aqm[2:], 'gcbc': gcbc[2:]}, seeds=(2,), overrides=('protocol.episodes=10', 'aqm:map.delta=3'))
+    with pytest.raises(ValueError, match="differs in its overrides"):
+        compare.merge([a, scoped], str(tmp_path / 'x'), **QUIET)
+    assert not os.path.exists(tmp_path / 'x')
 
 
 def _tree(folder) -> dict:
