@@ -274,7 +274,7 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     """One table from several finished ``aqm-mjx compare`` folders: their methods' rows side by side.
 
     For rows that several sessions (or machines) computed on the same data and episodes. Every folder's
-    ``results.json`` must agree on the data's SHA-256, the environment, style, preset, seeds, episode key
+    ``results.json`` must agree on the data's SHA-256, the environment, style, preset, episode key
     (``eval_seed``), layout, tasks and episodes, and on the overrides given to every method (a
     ``METHOD:`` override travels with its method; ``protocol.workers``, how many processes stepped
     OGBench's environments, may differ). A method may appear in several folders when each holds other
@@ -334,9 +334,7 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
         r0 = hs[0][1]
         configs[m] = r0['configs'][m]
         scoped += [o for o in r0.get('overrides', []) if _scope(o) == m]
-        # the method's row, then its ablations' (results.json may hold the rows in another order)
-        mine = [k for k in sorted(r0['rows'], key=lambda k: k != m) if k.split('/', 1)[0] == m]
-        for k in mine:
+        for k in _rows_of(r0, m):
             rows[k] = r0['rows'][k] if len(hs) == 1 else {
                 v: _pooled([(r['seeds'], r['rows'][k][v]) for _, r in hs], r0['tasks'], int(r0['episodes']))
                 for v in r0['variants']}
@@ -347,6 +345,12 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     with files.run_lock(out):  # one writer per folder, as compare
         _write(out, result, log)
     return result
+
+
+def _rows_of(r: dict, m: str) -> list[str]:
+    """The names of method ``m``'s rows in comparison ``r``: its own, then its ablations' (``m/AGENT``;
+    results.json may hold the rows in another order)."""
+    return [k for k in sorted(r['rows'], key=lambda k: k != m) if k.split('/', 1)[0] == m]
 
 
 # what may differ between two folders' configs of one method whose seeds merge joins: the first seed, and
@@ -372,6 +376,11 @@ def _check_seeds_of_one_method(m: str, hs: list) -> None:
         return
     seen = {}
     for f, r in hs:
+        bad = [k for k in _rows_of(r, m) for v in r['variants']
+               if len(r['rows'][k][v]['seed_means']) != len(r['seeds'])]
+        if bad:
+            raise ValueError(f'{f}/results.json: rows {bad} hold another number of seed means than its '
+                             f'{len(r["seeds"])} seeds')
         for s in r['seeds']:
             if s in seen:
                 raise ValueError(f'method {m!r} has seed {s} in both {seen[s]} and {f}: keep one (merge takes each '
@@ -380,24 +389,20 @@ def _check_seeds_of_one_method(m: str, hs: list) -> None:
     f0, r0 = hs[0]
     c0 = {k: v for k, v in _flat(r0['configs'][m]).items() if k not in _PER_FOLDER}
     o0 = sorted(o for o in r0.get('overrides', []) if _scope(o) == m)
-    k0 = sorted(k for k in r0['rows'] if k.split('/', 1)[0] == m)
+    k0 = sorted(_rows_of(r0, m))
     for f, r in hs[1:]:
         c = {k: v for k, v in _flat(r['configs'][m]).items() if k not in _PER_FOLDER}
         diff = sorted(k for k in set(c0) | set(c) if c0.get(k, '(absent)') != c.get(k, '(absent)'))
         o = sorted(o for o in r.get('overrides', []) if _scope(o) == m)
         if o != o0:
             diff.append(f'its overrides ({o} against {o0})')
-        k = sorted(k for k in r['rows'] if k.split('/', 1)[0] == m)
+        k = sorted(_rows_of(r, m))
         if k != k0:
             diff.append(f'its rows ({k} against {k0})')
         if diff:
             raise ValueError(f'method {m!r} in {f} and {f0} differs in ' + ', '.join(diff[:8])
                              + (f' and {len(diff) - 8} more' if len(diff) > 8 else '')
                              + ': seeds of one method merge only when trained and evaluated alike')
-        bad = [k for k in k0 for v in r['variants'] if len(r['rows'][k][v]['seed_means']) != len(r['seeds'])]
-        if bad:
-            raise ValueError(f'{f}/results.json: rows {bad} hold another number of seed means than its '
-                             f'{len(r["seeds"])} seeds')
 
 
 def _pooled(cells: list, tasks: Sequence[int], episodes: int) -> dict:

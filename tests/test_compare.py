@@ -406,6 +406,14 @@ def test_merge_pools_the_seeds_of_one_method_from_two_folders(tmp_path):
     _finished(scoped, {'aqm': aqm[2:], 'gcbc': gcbc[2:]}, seeds=(2,), overrides=('protocol.episodes=10', 'aqm:map.delta=3'))
     with pytest.raises(ValueError, match="differs in its overrides"):
         compare.merge([a, scoped], str(tmp_path / 'x'), **QUIET)
+    # a folder whose rows hold another number of seed means than its seeds (the first folder too)
+    short = str(tmp_path / 'short')
+    r = _finished(short, {'aqm': aqm[:2], 'gcbc': gcbc[:2]}, seeds=(0, 1))
+    r['rows']['aqm']['base']['seed_means'] = [0.8]
+    with open(os.path.join(short, 'results.json'), 'w') as f:
+        json.dump(r, f)
+    with pytest.raises(ValueError, match=r"short/results.json: rows \['aqm'\] hold another number of seed means"):
+        compare.merge([short, b], str(tmp_path / 'x'), **QUIET)
     assert not os.path.exists(tmp_path / 'x')
 
 
