@@ -49,7 +49,7 @@ def main() -> None:
     env = envs.make(cfg.train.env)
     data = assess.read_data(ev['dataset'], env)
     _, k_map_report, k_eval_report = stage_keys(jax.random.PRNGKey(a.eval_seed))
-    k_map_curve, k_eval_curve = jax.random.split(stage_keys(jax.random.PRNGKey(a.eval_seed))[2])
+    k_map_curve, k_eval_curve = jax.random.split(k_eval_report)  # compare hands the curve stage_keys(...)[2]
     agent_cfg = dataclasses.replace(cfg.agent, kappa=math.inf, patience=0.0)  # no pruning, as the curve
     report = dataclasses.replace(cfg.protocol, ablations=(), calibrate='none', split='report', episodes=a.episodes)
     curve = dataclasses.replace(cfg.protocol, ablations=(), calibrate='none', split='dev', episodes=a.curve_episodes,
