@@ -160,6 +160,20 @@ def calibration_line(cal: dict, agent_cfg) -> str:
     return f'{where} ({q}){paper}'
 
 
+def curve_setup(cfg: RunConfig, key: jax.Array, episodes: Optional[int] = None) -> tuple:
+    """How a learning-curve point evaluates: ``(protocol, agent_cfg, k_map, k_eval)``, the protocol on
+    the development split with ``episodes`` a task (default ``cfg.protocol.curve_episodes``), no
+    ablations, no calibration, in ``curve_backend``'s physics; the agent without pruning (``kappa``
+    infinite, ``patience`` 0); ``key`` (``stage_keys(...)[2]`` in a comparison) split into the map's key
+    and the episodes' key."""
+    protocol = dataclasses.replace(cfg.protocol, episodes=cfg.protocol.curve_episodes if episodes is None else episodes,
+                                   ablations=(), calibrate='none', split='dev',
+                                   backend=cfg.protocol.curve_backend or cfg.protocol.backend)
+    agent_cfg = dataclasses.replace(cfg.agent, kappa=math.inf, patience=0.0)
+    k_map, k_eval = jax.random.split(key)
+    return protocol, agent_cfg, k_map, k_eval
+
+
 def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str = '') -> Optional[fit.Curve]:
     """The learning curve of a training run (:class:`~aqm_mjx.learn.fit.Curve`; None when
     ``cfg.protocol.curve_episodes`` is 0): at every checkpoint, the method's agent without pruning
@@ -171,11 +185,8 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
     n = cfg.protocol.curve_episodes
     if not n:
         return None
-    protocol = dataclasses.replace(cfg.protocol, episodes=n, ablations=(), calibrate='none', split='dev',
-                                   backend=cfg.protocol.curve_backend or cfg.protocol.backend)
-    agent_cfg = dataclasses.replace(cfg.agent, kappa=math.inf, patience=0.0)
+    protocol, agent_cfg, k_map, k_eval = curve_setup(cfg, key)
     variants = {'base': env.layout}
-    k_map, k_eval = jax.random.split(key)
     programs, drawers = {}, {}
 
     def point(trained: fit.Trained) -> dict:

@@ -78,6 +78,30 @@ def test_shift_names_pick_layouts():
         assess.variants_for('medium', 'base,close-1-1')
 
 
+def test_curve_setup_is_the_development_split_without_pruning():
+    """A learning-curve point (and benchmarks/experiments/map_key.py, which re-runs it): development
+    episodes, no ablations or calibration, the curve's backend, kappa infinite and patience 0, and the
+    key split in two (map, episodes); everything else as the run's config."""
+    import math
+    from aqm_mjx import assess
+    cfg = pipeline.RunConfig()
+    cfg = dataclasses.replace(cfg, protocol=dataclasses.replace(
+        cfg.protocol, curve_episodes=3, episodes=50, ablations=('no-pruning',), calibrate='stall', split='report',
+        backend='mjx', curve_backend='ogbench'))
+    key = jax.random.PRNGKey(7)
+    proto, agent_cfg, k_map, k_eval = assess.curve_setup(cfg, key)
+    assert (proto.episodes, proto.ablations, proto.calibrate, proto.split, proto.backend) == (
+        3, (), 'none', 'dev', 'ogbench')
+    assert proto.horizon == cfg.protocol.horizon and proto.tasks == cfg.protocol.tasks
+    assert agent_cfg.kappa == math.inf and agent_cfg.patience == 0.0
+    assert agent_cfg.switch_radius == cfg.agent.switch_radius
+    want = jax.random.split(key)
+    assert (np.asarray(k_map) == np.asarray(want[0])).all() and (np.asarray(k_eval) == np.asarray(want[1])).all()
+    assert assess.curve_setup(cfg, key, episodes=8)[0].episodes == 8
+    no_curve_backend = dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, curve_backend=''))
+    assert assess.curve_setup(no_curve_backend, key)[0].backend == 'mjx'
+
+
 # ------------------------------------------------------------------------------------ the table
 def test_config_and_episode_table():
     specs = protocol.agent_specs(0.5, ('no-pruning', 'flat', 'kappa=1'))

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import os
 import sys
 import time
@@ -49,11 +48,9 @@ def main() -> None:
     env = envs.make(cfg.train.env)
     data = assess.read_data(ev['dataset'], env)
     _, k_map_report, k_eval_report = stage_keys(jax.random.PRNGKey(a.eval_seed))
-    k_map_curve, k_eval_curve = jax.random.split(k_eval_report)  # compare hands the curve stage_keys(...)[2]
-    agent_cfg = dataclasses.replace(cfg.agent, kappa=math.inf, patience=0.0)  # no pruning, as the curve
+    # compare hands the curve stage_keys(...)[2]; the curve's protocol and agent settings, as it runs them
+    curve, agent_cfg, k_map_curve, k_eval_curve = assess.curve_setup(cfg, k_eval_report, a.curve_episodes)
     report = dataclasses.replace(cfg.protocol, ablations=(), calibrate='none', split='report', episodes=a.episodes)
-    curve = dataclasses.replace(cfg.protocol, ablations=(), calibrate='none', split='dev', episodes=a.curve_episodes,
-                                backend=cfg.protocol.curve_backend or cfg.protocol.backend)
     variants = {'base': env.layout}
     maps = {}
     for name, key in (('report', k_map_report), ('curve', k_map_curve)):
