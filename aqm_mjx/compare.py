@@ -263,6 +263,10 @@ def _read_comparison(folder: str) -> dict:
                 faults.append(f"{key!r} lacks method(s) {lost}")
     if not isinstance(r.get('overrides', []), list):
         faults.append(f"'overrides' is {type(r['overrides']).__name__}, not a list")
+    paths = lambda v: isinstance(v, str) or (isinstance(v, list) and all(isinstance(x, str) for x in v))  # noqa: E731
+    origin = r.get('merged_from', {})  # a table merge wrote: each method's folder(s)
+    if not (isinstance(origin, dict) and all(map(paths, origin.values()))):
+        faults.append("'merged_from' is not an object of folders (a path or a list of paths per method)")
     if not faults:  # every number the table prints is a number
         faults += _row_faults(r)
     if faults:
@@ -281,7 +285,8 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
     seeds of it, trained and evaluated alike (the same config but its first seed, the same ``METHOD:``
     overrides and rows): its rows are pooled over their seeds (:func:`_pooled`). Every method must end
     with the same seeds. Writes ``OUT/results.json`` (with ``merged_from``: a method's folder, or the
-    list of its folders where its seeds were pooled), ``OUT/table.md`` and ``OUT/success.png`` holding
+    list of its folders where its seeds were pooled; an input that ``merge`` wrote passes on the folders
+    its own ``merged_from`` names), ``OUT/table.md`` and ``OUT/success.png`` holding
     ``OUT``'s lock (:func:`aqm_mjx.files.run_lock`); the inputs are only read: an ``OUT`` that is,
     lies inside or links into an input (or holds one) is refused before anything is written. Returns
     the merged comparison.
@@ -338,13 +343,23 @@ def merge(folders: Sequence[str], out: str, log=print) -> dict:
             rows[k] = r0['rows'][k] if len(hs) == 1 else {
                 v: _pooled([(r['seeds'], r['rows'][k][v]) for _, r in hs], r0['tasks'], int(r0['episodes']))
                 for v in r0['variants']}
-    origin = {m: os.path.abspath(hs[0][0]) if len(hs) == 1 else [os.path.abspath(f) for f, _ in hs]
-              for m, hs in held.items()}
+    origin = {m: _origin(m, hs) for m, hs in held.items()}
     result = dict(first, methods=names, rows=rows, configs=configs, seeds=seeds, overrides=shared + scoped,
                   merged_from=origin)
     with files.run_lock(out):  # one writer per folder, as compare
         _write(out, result, log)
     return result
+
+
+def _origin(m: str, hs: list) -> str | list[str]:
+    """The folder(s) where method ``m``'s rows were computed, from ``hs`` ([(folder, results)]): each
+    folder, or, for a table ``merge`` wrote, the folder(s) its ``merged_from`` names for ``m``; one path,
+    or the list where its seeds come from several."""
+    got = []
+    for f, r in hs:
+        o = r.get('merged_from', {}).get(m, os.path.abspath(f))
+        got += [o] if isinstance(o, str) else list(o)
+    return got[0] if len(got) == 1 else got
 
 
 def _rows_of(r: dict, m: str) -> list[str]:

@@ -388,6 +388,26 @@ def test_merge_pools_the_seeds_of_one_method_from_two_folders(tmp_path):
     assert merged['merged_from']['aqm'] == [os.path.abspath(a), os.path.abspath(b)]
     assert merged['merged_from']['gas'] == os.path.abspath(c)
     assert '| aqm | 80 | 53 | **67** |' in open(tmp_path / 'out' / 'table.md').read()
+    # a merged table as an input passes on the folders that computed its rows, pooled ones too
+    d = str(tmp_path / 'd')
+    _finished(d, {'gcivl': [(0.2, 0.2)] * 3}, seeds=(0, 1, 2))
+    again = compare.merge([str(tmp_path / 'out'), d], str(tmp_path / 'again'), **QUIET)
+    assert again['rows'] == dict(merged['rows'], gcivl=again['rows']['gcivl'])
+    assert again['merged_from'] == dict(merged['merged_from'], gcivl=os.path.abspath(d))
+    e, t = str(tmp_path / 'e'), str(tmp_path / 't')
+    _finished(e, {'crl': [(0.1, 0.1)] * 2}, seeds=(0, 1))
+    compare.merge([a, e], t, **QUIET)
+    _finished(str(tmp_path / 'b3'), {'aqm': aqm[2:], 'gcbc': gcbc[2:], 'crl': [(0.3, 0.3)]}, seeds=(2,))
+    three = compare.merge([t, str(tmp_path / 'b3')], str(tmp_path / 'three'), **QUIET)
+    assert three['merged_from']['aqm'] == [os.path.abspath(a), str(tmp_path / 'b3')]
+    assert three['merged_from']['crl'] == [os.path.abspath(e), str(tmp_path / 'b3')]
+    with open(os.path.join(t, 'results.json')) as f:
+        r = json.load(f)
+    r['merged_from'] = {'aqm': 3}
+    with open(os.path.join(t, 'results.json'), 'w') as f:
+        json.dump(r, f)
+    with pytest.raises(files.BadFileError, match="'merged_from' is not an object of folders"):
+        compare.merge([t, str(tmp_path / 'b3')], str(tmp_path / 'x'), **QUIET)
     # a method with seeds the others lack
     with pytest.raises(ValueError, match=r"cover different seeds \(aqm: \[0, 1\]; gcbc: \[0, 1\]; gas: \[0, 1, 2\]"):
         compare.merge([a, c], str(tmp_path / 'x'), **QUIET)
