@@ -232,6 +232,34 @@ def test_gas_trains_its_representation_then_its_policy_each_with_its_own_adam():
     assert np.isfinite(float(m2['actor/loss'])) and float(m2['critic/loss']) > 0
 
 
+def test_seeds_vmapped_share_their_step_so_gas_pays_for_one_phase_an_update_and_match_each_seed_alone():
+    import jax
+
+    from aqm_mjx.data import dataset as dsm
+    from aqm_mjx.data import synthetic
+    from aqm_mjx.learn import fit, methods
+
+    m = methods.get('gas')
+    cfg = m.preset('ci', env='pointmaze-medium', steps=8, updates_per_call=2, log_every=2, checkpoint_every=2)
+    learner = m.make(cfg, 2, 2)
+    ds = dsm.to_device(synthetic.point_walks(n_traj=20, t_len=60))
+    alone = [learner.init(jax.random.PRNGKey(s)) for s in (0, 1)]
+    both = jax.tree.map(lambda *x: jnp.stack(x), *alone)
+    run, vrun = jax.jit(fit.chunk_step(learner.update, 3)), jax.jit(fit.seeds_chunk(learner.update, 3))
+    # the phase is one cond in the vmapped program; vmap with a per-seed step turns it into a select
+    # over both phases' updates (the control)
+    assert 'cond[' in str(jax.make_jaxpr(fit.seeds_chunk(learner.update, 3))(both, ds))
+    assert 'cond[' not in str(jax.make_jaxpr(jax.vmap(fit.chunk_step(learner.update, 3), in_axes=(0, None)))(both, ds))
+    for _ in range(2):  # 6 updates: across the boundary at 4
+        alone = [run(s, ds)[0] for s in alone]
+        both, metrics = vrun(both, ds)
+    np.testing.assert_array_equal(both.step, [6, 6])
+    np.testing.assert_allclose(metrics['phase'], [2 / 3, 2 / 3])  # updates 3, 4, 5: the last two in phase 2
+    for i, a in enumerate(alone):
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(jax.tree.map(lambda v: v[i], both))):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2e-4, atol=2e-5)
+
+
 def test_gas_map_representatives_and_trajectory_ends():
     from aqm_mjx.data.dataset import trajectory_ends
 

@@ -55,6 +55,18 @@ def chunk_step(update: Callable, length: int) -> Callable:
     return run
 
 
+def seeds_chunk(update: Callable, length: int) -> Callable:
+    """:func:`chunk_step` over ``S`` seeds' stacked states, vmapped with the update index shared.
+
+    Every seed of one program is at the same step (they start from a common checkpoint and update
+    in lockstep), so the step goes in unbatched (seed 0's): a branch on it, as GAS's phase, stays one
+    ``lax.cond`` instead of vmap's select over both branches (both computed on every update). The
+    states come back stacked, the step with them."""
+    inner = chunk_step(update, length)
+    run = jax.vmap(lambda state, ds, step: inner(state.replace(step=step), ds), in_axes=(0, None, None))
+    return lambda state, ds: run(state, ds, state.step[0])
+
+
 def train_scan(learner: Learner, key: jax.Array, ds: ds_io.Dataset, progress: Optional[Callable] = None):
     """``learner.init(key)``, then the whole run as a ``lax.scan`` over its chunks (pure, jittable).
 
@@ -369,8 +381,7 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log, cu
         files.write_json(os.path.join(o, 'config.json'), m, makedirs=True)
         trim_metrics(os.path.join(o, 'metrics.jsonl'), start)
     state = jax.tree.map(lambda *x: jnp.stack(x), *states)
-    chunk = jax.jit(jax.vmap(chunk_step(learner.update, cfg.updates_per_call), in_axes=(0, None)),
-                    donate_argnums=0)
+    chunk = jax.jit(seeds_chunk(learner.update, cfg.updates_per_call), donate_argnums=0)
     state, step = _host_loop(chunk, state, ds, cfg, start, outs, savers, metas, [set(d) for d in done], n,
                              f'train {method.name} {cfg.preset} x{n} seeds', progress, method.progress,
                              _curve_points(curve, method, cfgs, learner, metas), curve)

@@ -22,8 +22,8 @@ them is ``H`` away and the trajectory goes on, the window's last state stands in
 distance grows about one unit per step, so at the default window, 2 H, that is rare; an
 undertrained one's grows slower (``actor/waystep_in_window`` says how often the window held it).
 Both phases run in one training loop, so a run checkpoints and resumes as any other method. Seeds
-vmapped into one program (``aqm-mjx compare``) each carry their step, so JAX runs both phases'
-updates and keeps the right one: such a program pays for both phases on every update.
+vmapped into one program (``aqm-mjx compare``) share their step (:func:`aqm_mjx.learn.fit.seeds_chunk`),
+so the phase stays one branch there too: each update pays for its own phase only.
 """
 
 from __future__ import annotations
