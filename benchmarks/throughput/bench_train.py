@@ -9,9 +9,15 @@ Each row builds a method's learner for antmaze (29-d observations, 8-d actions) 
 of 100K states in 100 trajectories, runs one jitted chunk of ``updates_per_call`` updates (compile +
 run), then ``--calls`` more, timed with ``block_until_ready``. On a CPU the paper preset's chunk is
 cut to 20 updates (its 1000 take minutes per call). At the presets in ``--vmap-presets`` the same
-chunk also runs for ``--vmap-seeds`` seeds under ``jax.vmap`` (what ``aqm-mjx compare`` does) and
-the row gives seed-updates/s and the ratio to one seed measured in the same run. 'hours for the
-preset' is the preset's total updates at the measured one-seed rate.
+chunk also runs for ``--vmap-seeds`` seeds under ``jax.vmap`` with their step shared
+(``fit.seeds_chunk``, what ``aqm-mjx compare`` does) and the row gives seed-updates/s and the ratio
+to one seed measured in the same run; ``--per-seed-step`` also times the vmap that gives each seed
+its own step (a branch on the step, as GAS's phase, then computes both sides), as a ratio.
+``--phase2`` starts GAS's states at its phase boundary, so that its skill policy's updates are timed
+rather than its representation's. 'hours for the preset' is the preset's total updates at the
+measured one-seed rate.
+
+    python benchmarks/throughput/bench_train.py --methods gas --presets cpu --vmap-seeds 3 --per-seed-step --phase2
 """
 
 from __future__ import annotations
@@ -60,8 +66,9 @@ def _widths(cfg) -> dict:
             if k.endswith('hidden') or k in ('latent', 'rep_dim', 'n_components', 'component_size')}
 
 
-def rate(preset, calls, upc, objective='saw', method='aqm', seeds=1):
-    """One row: ``method`` at ``preset`` (AQM's ``objective``), one seed, and ``seeds`` vmapped if > 1."""
+def rate(preset, calls, upc, objective='saw', method='aqm', seeds=1, per_seed_step=False, phase2=False):
+    """One row: ``method`` at ``preset`` (AQM's ``objective``), one seed, and ``seeds`` vmapped if > 1
+    (step shared; also each seed's own with ``per_seed_step``); GAS from its phase boundary with ``phase2``."""
     entry = methods.get(method)
     over = dict(objective=objective) if 'objective' in entry.config.__dataclass_fields__ else {}
     if upc:
@@ -69,8 +76,13 @@ def rate(preset, calls, upc, objective='saw', method='aqm', seeds=1):
     cfg = entry.preset(preset, env='antmaze-medium', **over)
     learner = entry.make(cfg, 29, 8)
     ds = _dataset()
+    start = getattr(cfg, 'tdr_steps', 0) if phase2 else 0
+
+    def init(i):
+        return learner.init(jax.random.PRNGKey(i)).replace(step=jnp.int32(start))
+
     step = fit.chunk_step(learner.update, cfg.updates_per_call)
-    first, dt, m = _timed(jax.jit(step, donate_argnums=0), learner.init(jax.random.PRNGKey(0)), ds, calls)
+    first, dt, m = _timed(jax.jit(step, donate_argnums=0), init(0), ds, calls)
     per_s = cfg.updates_per_call / dt
     full = entry.preset(preset).steps
     row = dict(method=method, preset=preset, batch=cfg.batch_size, **_widths(cfg), updates_per_call=cfg.updates_per_call,
@@ -79,13 +91,23 @@ def rate(preset, calls, upc, objective='saw', method='aqm', seeds=1):
                finite=bool(all(np.isfinite(float(v)) for v in m.values())))
     if method == 'aqm':
         row['objective'] = objective
+    if phase2:
+        row['start_step'] = start
     if seeds > 1:
-        states = jax.tree.map(lambda *x: jnp.stack(x), *[learner.init(jax.random.PRNGKey(i)) for i in range(seeds)])
-        vm = jax.jit(jax.vmap(step, in_axes=(0, None)), donate_argnums=0)
-        first_v, dt_v, _ = _timed(vm, states, ds, calls)
+        def stacked():
+            return jax.tree.map(lambda *x: jnp.stack(x), *[init(i) for i in range(seeds)])
+
+        vm = jax.jit(fit.seeds_chunk(learner.update, cfg.updates_per_call), donate_argnums=0)
+        first_v, dt_v, _ = _timed(vm, stacked(), ds, calls)
         row.update(vmap_seeds=seeds, vmap_compile_s=round(first_v - dt_v, 1),
                    vmap_seed_updates_per_s=round(seeds * cfg.updates_per_call / dt_v, 1),
                    vmap_vs_one_seed=round(seeds * dt / dt_v, 2))
+        if per_seed_step:
+            own = jax.jit(jax.vmap(step, in_axes=(0, None)), donate_argnums=0)
+            first_o, dt_o, _ = _timed(own, stacked(), ds, calls)
+            row.update(per_seed_step_compile_s=round(first_o - dt_o, 1),
+                       per_seed_step_seed_updates_per_s=round(seeds * cfg.updates_per_call / dt_o, 1),
+                       shared_vs_per_seed_step=round(dt_o / dt_v, 2))
     return row
 
 
@@ -98,6 +120,9 @@ def main():
     p.add_argument('--objectives', nargs='*', default=['saw'], help="AQM's objectives (aqm rows)")
     p.add_argument('--vmap-seeds', type=int, default=2, help='seeds under vmap (1: not measured)')
     p.add_argument('--vmap-presets', nargs='*', default=['cpu'], help='presets where vmapped seeds are measured')
+    p.add_argument('--per-seed-step', action='store_true',
+                   help="also time the vmap that gives each seed its own step (the alternative to compare's)")
+    p.add_argument('--phase2', action='store_true', help="start GAS's states at its phase boundary")
     p.add_argument('--out', default=None)
     a = p.parse_args()
     rows = []
@@ -108,13 +133,17 @@ def main():
         for method in a.methods:
             for obj in (a.objectives if method == 'aqm' else ['saw']):
                 seeds = a.vmap_seeds if preset in a.vmap_presets else 1
-                r = rate(preset, a.calls, upc, obj, method, seeds)
+                r = rate(preset, a.calls, upc, obj, method, seeds, a.per_seed_step, a.phase2)
                 label = method if method != 'aqm' or len(a.objectives) == 1 else f'aqm:{obj}'
                 vm = (f'{seeds:>6}{r["vmap_seed_updates_per_s"]:>20.1f}{r["vmap_vs_one_seed"]:>7.2f}' if seeds > 1
                       else f'{"-":>6}{"-":>20}{"-":>7}')
                 print(f'{label:<9}{preset:<7}{r["batch"]:>6}{r["updates_per_call"]:>9}{r["compile_s"]:>10.1f}'
                       f'{r["updates_per_s"]:>9.1f}{r["hours_for_preset"]:>13.2f}' + vm + ('' if r['finite'] else
                                                                                              '  NON-FINITE'), flush=True)
+                if 'shared_vs_per_seed_step' in r:
+                    print(f'{"":<9}each seed its own step: {r["per_seed_step_seed_updates_per_s"]:.1f} seed-upd/s '
+                          f'(compile {r["per_seed_step_compile_s"]:.1f} s); the shared step '
+                          f'x{r["shared_vs_per_seed_step"]:.2f}', flush=True)
                 rows.append(r)
                 if a.out:  # rows so far, so that a run cut short keeps what it measured
                     with open(a.out, 'w') as f:
