@@ -103,6 +103,12 @@ def test_curve_setup_is_the_development_split_without_pruning():
 
 
 # ------------------------------------------------------------------------------------ the table
+def test_steps_per_s_counts_every_chunk_and_step_over_the_whole_evaluation():
+    # 2 chunks x 50 environments x 1,000 steps in 25 s; one chunk in 20 s
+    assert evaluate.steps_per_s(dict(chunks=2, envs_per_chunk=50, steps=1000, total_s=25.0)) == 4000.0
+    assert evaluate.steps_per_s(dict(chunks=1, envs_per_chunk=50, steps=1000, total_s=20.0)) == 2500.0
+
+
 def test_config_and_episode_table():
     specs = protocol.agent_specs(0.5, ('no-pruning', 'flat', 'kappa=1'))
     assert [s[0] for s in specs] == ['aqm', 'no-pruning', 'flat', 'kappa=1']

@@ -250,21 +250,15 @@ def test_map_stage_selects_with_every_selector_including_the_papers_batches():
             assert int(want.count) == k and np.array_equal(want.index, kp.index)
 
 
-def _node_count_script():
+def test_node_count_joins_earlier_rows_only_when_they_evaluated_the_same_episodes(tmp_path):
     import importlib.util  # pylint: disable=import-outside-toplevel
+    import json  # pylint: disable=import-outside-toplevel
     import os  # pylint: disable=import-outside-toplevel
 
     spec = importlib.util.spec_from_file_location('node_count', os.path.join(
         os.path.dirname(__file__), '..', 'benchmarks', 'experiments', 'node_count.py'))
     nc = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(nc)
-    return nc
-
-
-def test_node_count_joins_earlier_rows_only_when_they_evaluated_the_same_episodes(tmp_path):
-    import json  # pylint: disable=import-outside-toplevel
-
-    nc = _node_count_script()
     args = dict(episodes=10, split='report', backend='ogbench', seed=0, deltas=[12.0])
     row = dict(method='aqm', nodes=193, success=0.7, ci95=[0.56, 0.81], fw_s=0.0026, bytes_per_env=483_000)
     path = tmp_path / 'node_count.json'
@@ -277,9 +271,3 @@ def test_node_count_joins_earlier_rows_only_when_they_evaluated_the_same_episode
     with pytest.raises(ValueError, match='not a node_count.json'):
         path.write_text(json.dumps(dict(rows=[], args=args)))
         nc.earlier_rows(str(path), args)
-
-
-def test_node_count_rates_the_whole_evaluation_over_every_chunk_and_step():
-    nc = _node_count_script()  # 2 chunks x 50 environments x 1,000 steps in 25 s; one chunk in 20 s
-    assert nc.eval_rate(dict(chunks=2, envs_per_chunk=50, steps=1000, total_s=25.0)) == 4000.0
-    assert nc.eval_rate(dict(chunks=1, envs_per_chunk=50, steps=1000, total_s=20.0)) == 2500.0

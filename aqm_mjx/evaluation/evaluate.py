@@ -205,11 +205,20 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     timing['progress_callbacks'] = ticks.calls
     timing['env_steps_per_s_after_first_chunk'] = (
         (n_chunks - 1) * chunk * eps.steps / (timing['total_s'] - timing['first_chunk_s']) if n_chunks > 1 else None)
+    timing['env_steps_per_s_all_chunks'] = steps_per_s(timing)
     rates, prunes = jax.device_get(proto.success_rates(eps, success, pruned))
     names = list(eps.variants)
     summary = proto.format_summary(rates, eps.agents, names, eps.task_ids, prunes)
     return Results(eps.agents, names, eps.task_ids, table, success, pruned, summary, traces, timing, legs, n_legs,
                    removed)
+
+
+def steps_per_s(timing: dict) -> float:
+    """Control steps/s over a whole evaluation (:func:`evaluate`'s ``timing``), the first, compiling
+    chunk included: every chunk's environments x the episode's steps over the wall time. MJX's
+    program runs every step; OGBench's loop ends a chunk early when all its episodes have ended, and
+    then this overstates the steps run."""
+    return timing['chunks'] * timing['envs_per_chunk'] * timing['steps'] / timing['total_s']
 
 
 def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.ProtocolConfig,

@@ -93,15 +93,7 @@ def setting(method: str, trained, env, data, cfg, variants, k_map, k_eval, out: 
                 fw_s=round(fw_seconds(graph.w), 5), bytes_per_env=int(per_env), bytes_shared=int(shared),
                 success=float(ok.mean()), ci95=[lo, hi], episodes=int(len(ok)),
                 env_steps_per_s=res.timing.get('env_steps_per_s_after_first_chunk'), eval_s=res.timing['total_s'],
-                env_steps_per_s_all=eval_rate(res.timing))
-
-
-def eval_rate(timing: dict) -> float:
-    """Control steps/s of the whole evaluation, the agent's first (compiling) call included: every
-    chunk's environments x the episode's steps over the wall time. MJX's program runs every step;
-    OGBench's loop stops a chunk early only when every episode in it has ended (then this undercounts
-    nothing but overstates the steps; the giant rows, at most 70% success, never end a chunk early)."""
-    return timing['chunks'] * timing['envs_per_chunk'] * timing['steps'] / timing['total_s']
+                env_steps_per_s_all=res.timing['env_steps_per_s_all_chunks'])
 
 
 SAME_EPISODES = ('episodes', 'split', 'backend', 'seed')
