@@ -79,14 +79,14 @@ def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig
         return None
     run_cfg = cfg.to_dict()
     agent_cfg = {k: v for k, v in run_cfg['agent'].items() if k not in ('kappa', 'patience')}
-    chunk = {k: run_cfg['protocol'][k] for k in ('horizon', 'backend', 'workers')}
+    chunk = {k: run_cfg['protocol'][k] for k in ('horizon', 'backend', 'workers', 'physics_preset')}
     sig = json.dumps([trained.method, dataclasses.replace(trained.config, seed=0).to_dict(), run_cfg['map'],
                       agent_cfg, chunk], sort_keys=True)
     if sig not in programs:
         steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans,
                               patience=cfg.agent.patience, own_rule=trained.agent.rule is not None).steps
         programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh(), cfg.protocol.backend,
-                                     cfg.protocol.workers)
+                                     cfg.protocol.workers, cfg.protocol.physics_preset)
     return programs[sig]
 
 
@@ -197,7 +197,7 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
             steps = plan_episodes(env, protocol, agent_cfg.kappa, variants, plans=agent.plans,
                                   own_rule=agent.rule is not None).steps
             programs[trained.method] = make_program(env, agent, agent_cfg, steps, device_mesh(), protocol.backend,
-                                                    protocol.workers)
+                                                    protocol.workers, protocol.physics_preset)
             drawers[trained.method] = curve_drawer(
                 trained.method, f'{env.name}: {label or trained.method}, {cfg.train.preset} preset, {{seeds}} seed(s)',
                 label)
@@ -339,7 +339,7 @@ def check_evaluation_memory(env, cfg: RunConfig, n_layouts: int) -> None:
     rows = len(agent_specs(1.0, p.ablations)) * n_layouts * len(p.tasks or range(env.num_tasks)) * p.episodes
     memory.check(rows * (MAX_LEGS * LEG_FIELDS * 4 + 256), f'the episode table ({rows:,} episodes)',
                  '--episodes (or the layouts and ablations)', (memory.host_available(), 'host'))
-    if p.backend == 'mjx':
+    if p.backend == 'mjx' and p.envs:  # (0: the chunk is chosen to fit)
         memory.check(p.envs * memory.env_state_bytes(env) * memory.FACTOR,
                      f'a chunk of {p.envs:,} environments', '--envs')
 

@@ -432,7 +432,7 @@ def _pooled(cells: list, tasks: Sequence[int], episodes: int) -> dict:
 def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, preset: str = presets.DEFAULT,
             dataset: Optional[str] = None, style: str = 'navigate', collect_episodes: int = 100,
             collect_batch: int = 55, overrides: Sequence[str] = (), shift: str = 'base', first_seed: int = 0,
-            eval_seed: int = 0, log=print, collect_physics: str = 'mjx') -> dict:
+            eval_seed: int = 0, log=print, collect_physics: str = 'mjx', collect_preset: str = 'ogbench') -> dict:
     """``aqm-mjx compare``: data, then for each method in turn its seeds trained (vmapped) and evaluated
     on the shared episodes; ``OUT/results.json``, ``OUT/table.md`` and ``OUT/success.png`` are
     rewritten after each method, so an interrupted comparison leaves the table of those done.
@@ -466,7 +466,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         files.write_json(cpath, dict(spec, methods=all_names, **kept), makedirs=True)
 
         path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
-                              physics=collect_physics)
+                              physics=collect_physics, physics_preset=collect_preset)
         data = assess.read_data(path, env)
         digest = ds_io.fingerprint(data)
         if recorded is not None and recorded != digest:

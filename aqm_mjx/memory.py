@@ -58,7 +58,7 @@ def _size(n: float) -> str:
     return f'{n / 2 ** 30:.1f} GiB' if n >= 2 ** 30 else f'{n / 2 ** 20:.0f} MiB'
 
 
-_STATE_BYTES: dict = {}  # environment name -> bytes of one state (a trace takes about 2 s)
+_STATE_BYTES: dict = {}  # (environment name, physics) -> bytes of one state (a trace takes about 2 s)
 
 
 def env_state_bytes(env) -> int:
@@ -67,11 +67,26 @@ def env_state_bytes(env) -> int:
     import jax  # pylint: disable=import-outside-toplevel
     import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
 
-    name = getattr(env, 'name', None) or id(env)
+    name = (getattr(env, 'name', None) or id(env), getattr(env, 'physics', None))  # contact caps size a state
     if name not in _STATE_BYTES:
         shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), jnp.int32(1))
         _STATE_BYTES[name] = int(sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes)))
     return _STATE_BYTES[name]
+
+
+#: the largest chunk an automatic choice makes (past it a GPU's throughput no longer grows, RESULTS 7.3)
+MAX_AUTO_ENVS = 65536
+
+
+def fitting_envs(env, where: Optional[tuple[int, str]] = None, cap: int = MAX_AUTO_ENVS) -> int:
+    """The environments per evaluation chunk that the memory estimate allows (``protocol.envs = 0``):
+    the largest power of two whose states, with :data:`FACTOR` headroom twice over (the agent's
+    state and the step's temporaries beside the environments'), fit in the memory available, at
+    most ``cap``."""
+    free, _ = where or available()
+    per_env = env_state_bytes(env) * FACTOR * 2
+    n = max(1, int(free // per_env))
+    return int(min(cap, 1 << (n.bit_length() - 1)))
 
 
 def training_bytes(cfg, obs_size: int, action_size: int) -> int:

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from aqm_mjx import config as cfg_lib
-from aqm_mjx import presets
+from aqm_mjx import envs, presets
 from aqm_mjx.agent.rollout import make_rollout
 from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.data import dataset as ds_io
@@ -126,7 +126,7 @@ def make_run(cfg: RunConfig, env, variants: Optional[dict] = None, progress: Opt
     episodes = proto.plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=agent.plans,
                                    patience=cfg.agent.patience, cut_slack=cfg.agent.cut_slack,
                                    own_rule=agent.rule is not None)
-    rollout = make_rollout(env, agent, cfg.agent, episodes.steps)
+    rollout = make_rollout(envs.with_physics(env, cfg.protocol.physics_preset), agent, cfg.agent, episodes.steps)
     rule = cfg.protocol.calibrate if agent.prunes else 'none'
     calibrates = agent.prunes and proto.needs_calibration(cfg.protocol)
     if calibrates:  # the calibration pass: no pruning, training layout, cells no task uses, its own key

@@ -28,16 +28,18 @@ from aqm_mjx.pipeline import RunConfig, make_run, stage_keys, summary
 
 # ------------------------------------------------------------------------------------------- data
 def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, batch: int, log=print,
-               style: str = 'navigate', layout: str = 'base', physics: str = 'mjx') -> str:
+               style: str = 'navigate', layout: str = 'base', physics: str = 'mjx',
+               physics_preset: str = 'ogbench') -> str:
     """The dataset file of a run: ``dataset`` if given, else ``OUT/data/ENV-STYLE.npz`` (on a shifted
     ``layout``: ``OUT/data/ENV-STYLE-LAYOUT.npz``), collected in ``physics`` (``'mjx'``, or ``'mujoco'``
-    on the host; ``episodes`` + a tenth for validation) unless it is already there."""
+    on the host; ``episodes`` + a tenth for validation) with the settings of ``physics_preset``
+    (:mod:`aqm_mjx.envs.physics`) unless it is already there."""
     if dataset:
         if not os.path.exists(dataset):
             raise FileNotFoundError(f'dataset {dataset!r} not found')
         return dataset
     ccfg = collect.CollectConfig(env=env_name, style=style, episodes=episodes, batch=batch, layout=layout,
-                                 physics=physics).resolved()
+                                 physics=physics, physics_preset=physics_preset).resolved()
     name = f'{env_name}-{style}' + ('' if layout == shifts.BASE else f'-{layout}')
     path = os.path.join(out, 'data', f'{name}.npz')
     if os.path.exists(path):
@@ -47,7 +49,7 @@ def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, b
     collect.check_output(path, cfg=ccfg)  # room for it, before minutes of collection
     where = '' if layout == shifts.BASE else f' on layout {layout}'
     log(f'[1/4 data] collecting {ccfg.episodes} + {ccfg.val_episodes} {style} episodes x {ccfg.steps} states{where} '
-        + ('in MJX' if physics == 'mjx' else 'in MuJoCo on the host'))
+        + ('in MJX' if physics == 'mjx' else 'in MuJoCo on the host') + f', physics {physics_preset}')
     res = collect.collect(ccfg)
     collect.write(res, path)
     collect.plot(res, path[:-4] + '.png')
@@ -56,7 +58,8 @@ def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, b
 
 # ------------------------------------------------------------------------------------- the run
 def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collect_episodes: int = 100,
-                 collect_batch: int = 55, shift: str = 'base', log=print, collect_physics: str = 'mjx') -> dict:
+                 collect_batch: int = 55, shift: str = 'base', log=print, collect_physics: str = 'mjx',
+                 collect_preset: str = 'ogbench') -> dict:
     """``aqm-mjx run``: data -> train (Orbax checkpoints; resumed when interrupted, skipped when
     complete) -> map -> evaluate, one progress display per stage. The run key is
     ``PRNGKey(cfg.train.seed)``. Writes ``OUT/run.json`` (the config), ``OUT/summary.json`` and
@@ -73,7 +76,8 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
         seed = cfg.train.seed
         k_train, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
         t0 = time.perf_counter()
-        path = data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, physics=collect_physics)
+        path = data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, physics=collect_physics,
+                          physics_preset=collect_preset)
         data = read_data(path, env)
         times['data_s'] = time.perf_counter() - t0
         # TRAIN (resumed when checkpoints exist; skipped when the run is complete)

@@ -13,13 +13,17 @@ import sys
 from aqm_mjx import presets
 
 
+#: where every command caches its compiled programs (README: "Compiled programs are cached")
+CACHE_DIR = '~/.cache/aqm_mjx/jax'
+
+
 def enable_compile_cache():
-    """JAX's persistent compilation cache for the commands: ``~/.cache/aqm_mjx/jax``, unless a cache
-    folder is already configured (``JAX_COMPILATION_CACHE_DIR``, or a caller's ``jax.config``), which wins."""
+    """JAX's persistent compilation cache for the commands: :data:`CACHE_DIR`, unless a cache folder
+    is already configured (``JAX_COMPILATION_CACHE_DIR``, or a caller's ``jax.config``), which wins."""
     import jax  # pylint: disable=import-outside-toplevel
 
     if not jax.config.jax_compilation_cache_dir:
-        jax.config.update('jax_compilation_cache_dir', os.path.expanduser('~/.cache/aqm_mjx/jax'))
+        jax.config.update('jax_compilation_cache_dir', os.path.expanduser(CACHE_DIR))
         jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
 
 
@@ -76,14 +80,16 @@ def cmd_collect(a):
     from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
 
     cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
-                                batch=a.batch, seed=a.seed, layout=a.layout, physics=a.physics).resolved()
+                                batch=a.batch, seed=a.seed, layout=a.layout, physics=a.physics,
+                                physics_preset=a.physics_preset).resolved()
     collect.check_output(a.out, a.overwrite, cfg)  # name, folder and free space before minutes of collection
     collect.check_memory(cfg)
     import jax  # pylint: disable=import-outside-toplevel
 
     where = jax.devices()[0] if cfg.physics == 'mjx' else 'the host (MuJoCo)'
     print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
-          f'{cfg.env} ({cfg.layout} layout), noise {cfg.noise}, {cfg.batch} at a time on {where}')
+          f'{cfg.env} ({cfg.layout} layout), noise {cfg.noise}, {cfg.batch} at a time on {where}, physics '
+          f'{cfg.physics_preset}')
     physics = {k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations)) if v is not None}
     res = collect.collect(cfg, physics=physics)
     train, val = collect.write(res, a.out, overwrite=a.overwrite)
@@ -212,13 +218,14 @@ def cmd_run(a):
           f'output in {out}')
     if not a.one_program:
         run.run_stepwise(cfg, out, dataset=a.dataset, collect_episodes=collect_episodes_of(a),
-                         collect_batch=a.collect_batch, shift=a.shift, collect_physics=collect_physics_of(a))
+                         collect_batch=a.collect_batch, shift=a.shift, collect_physics=collect_physics_of(a),
+                         collect_preset=cfg.protocol.physics_preset)
         return 0
     if a.shift != 'base':
         raise ValueError('--one-program evaluates the base layout; drop --shift')
     with files.run_lock(out):  # one writer per run folder
         path = run.data_stage(a.env, out, a.dataset, collect_episodes_of(a), a.collect_batch,
-                              physics=collect_physics_of(a))
+                              physics=collect_physics_of(a), physics_preset=cfg.protocol.physics_preset)
         data = assess.read_data(path, envs.make(a.env))
         res = run.run_one_program(cfg, data, a.seeds)
         files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
@@ -276,8 +283,10 @@ def cmd_compare(a):
                     collect_episodes=collect_episodes_of(a), collect_batch=a.collect_batch,
                     collect_physics=collect_physics_of(a),
                     overrides=(a.set or []) + ([f'protocol.backend={a.backend}'] if a.backend else [])
+                    + ([f'protocol.physics_preset={a.physics_preset}'] if a.physics_preset else [])
                     + ([f'protocol.workers={a.workers}'] if a.workers is not None else []),
-                    shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed)
+                    shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed,
+                    collect_preset=a.physics_preset or 'ogbench')
     return 0
 
 

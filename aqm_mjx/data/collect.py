@@ -88,6 +88,9 @@ class CollectConfig:
         layout: the walls the data are collected in: ``'base'`` (the maze's layout) or a variant of
             :mod:`aqm_mjx.envs.shifts` (``close-I-J``, ``open-I-J``), for models trained on a shifted
             layout (the training-layout half of the paper's Figure 3).
+        physics: ``'mjx'`` (one jitted MJX program) or ``'mujoco'`` (MuJoCo's C library on the host).
+        physics_preset: the physics settings of either (:mod:`aqm_mjx.envs.physics`): ``'ogbench'``
+            (OGBench's), ``'fast'`` or another row of the fidelity study.
     """
 
     env: str = 'antmaze-medium'
@@ -99,6 +102,7 @@ class CollectConfig:
     seed: int = 0
     layout: str = 'base'
     physics: str = 'mjx'
+    physics_preset: str = 'ogbench'
 
     def resolved(self) -> 'CollectConfig':
         """The config with OGBench's defaults filled in and every field checked."""
@@ -118,6 +122,7 @@ class CollectConfig:
         shifts.variant(maze, c.layout)  # an unknown layout names the maze's suite
         if c.physics not in PHYSICS:
             raise ValueError(f'unknown collection physics {c.physics!r}; expected one of {", ".join(PHYSICS)}')
+        envs.physics_presets.get(c.physics_preset)  # an unknown preset names the study's rows
         return c
 
     def grid(self) -> np.ndarray:
@@ -377,7 +382,8 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
         ``terminals``, ``qpos``, ``qvel``, and ``stats`` (timings, goals reached, flips).
     """
     cfg = cfg.resolved()
-    env = envs.make(cfg.env, max_episode_steps=cfg.steps, terminate_at_goal=False, **(physics or {}))
+    env = envs.make(cfg.env, physics=cfg.physics_preset, max_episode_steps=cfg.steps, terminate_at_goal=False,
+                    **(physics or {}))
     total = cfg.episodes + cfg.val_episodes
     batch = min(int(cfg.batch), total)
     bar = _progress(total, f'collect {cfg.env} {cfg.style}', progress)
@@ -431,6 +437,7 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
                  steady_transitions_per_s=round(steady / run_s, 1) if steady and run_s > 0 else None,
                  goals_reached_mean=float(reached.mean()), flipped_episodes=int(flipped.sum()),
                  progress_callbacks=ticks.calls, physics=cfg.physics,
+                 physics_preset=envs.physics_presets.describe(env.physics),
                  backend=jax.default_backend() if cfg.physics == 'mjx' else 'host')
     return CollectResult(train=train, val=val, config=cfg, stats=stats)
 

@@ -55,6 +55,7 @@ POINT_MOVE = 0.2  # OGBench's point: an action moves its position by this times 
 INTEGRATORS = {'euler': mujoco.mjtIntegrator.mjINT_EULER, 'rk4': mujoco.mjtIntegrator.mjINT_RK4,
                'implicitfast': mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
 SOLVERS = {'newton': mujoco.mjtSolver.mjSOL_NEWTON, 'cg': mujoco.mjtSolver.mjSOL_CG}
+OGBENCH_SUBSTEPS = 5  # OGBench's frame skip: 5 physics steps of dt 0.02 make one 0.1 s control step
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +67,8 @@ class PhysicsOptions:
     iterations: int = 100  # solver iterations (MuJoCo default; Brax-style ants use 1)
     ls_iterations: int = 50  # line-search iterations (MuJoCo default; Brax-style ants use 4)
     impl: str = 'jax'  # MJX implementation: 'jax' (any device) or 'warp' (MuJoCo Warp, NVIDIA GPUs)
+    # physics steps per control step; the control step stays OGBench's 0.1 s, so dt = 0.1 s / substeps
+    substeps: int = OGBENCH_SUBSTEPS
     # MJX contact caps (max_geom_pairs per collision-type group, max_contact_points in all), or None
     # for none. 12 keeps every floor-capsule pair of the ant and its 12 nearest proxy-capsule pairs;
     # 24 contacts exceed what a walking ant touching two walls has. Measured: halves the step cost
@@ -79,6 +82,8 @@ class PhysicsOptions:
             raise ValueError(f'unknown solver {self.solver!r}; expected one of {sorted(SOLVERS)}')
         if int(self.iterations) < 1 or int(self.ls_iterations) < 1:
             raise ValueError('iterations and ls_iterations must be >= 1')
+        if isinstance(self.substeps, bool) or not isinstance(self.substeps, int) or self.substeps < 1:
+            raise ValueError(f'substeps must be an integer >= 1; got {self.substeps!r}')
         if self.contact_caps is not None and (len(self.contact_caps) != 2 or min(self.contact_caps) < 1):
             raise ValueError(f'contact_caps must be None or (max_geom_pairs, max_contact_points) >= 1; got {self.contact_caps!r}')
         if self.impl not in ('jax', 'warp'):
@@ -178,6 +183,9 @@ def build_mj_model(agent: str, physics: PhysicsOptions = PhysicsOptions(), n_pro
     m.opt.solver = SOLVERS[physics.solver]
     m.opt.iterations = int(physics.iterations)
     m.opt.ls_iterations = int(physics.ls_iterations)
+    # the XML's dt is OGBench's (0.02 s, 5 to a control step); other substeps keep the control step
+    if int(physics.substeps) != OGBENCH_SUBSTEPS:  # (OGBench's own dt stays bit for bit the XML's)
+        m.opt.timestep = m.opt.timestep * OGBENCH_SUBSTEPS / int(physics.substeps)
     return m
 
 
@@ -200,7 +208,7 @@ class MazeEnv:
         self.physics = physics
         self.max_episode_steps = int(max_episode_steps)
         self.terminate_at_goal = bool(terminate_at_goal)  # False: OGBench's data-collection setting
-        self.frame_skip = 5
+        self.frame_skip = int(physics.substeps)
         self.goal_tol = 1.0 if agent == 'point' else 0.5
         self.reset_noise = 0.1
         self.layout = mazes.layout(maze)
@@ -392,4 +400,5 @@ class MazeEnv:
     def __repr__(self):
         p = self.physics
         return (f'MazeEnv({self.name}, obs {self.obs_size}, action {self.action_size}, tasks {self.num_tasks}, '
-                f'{p.integrator}/{p.solver} {p.iterations}x{p.ls_iterations}, caps {p.contact_caps}, impl={p.impl})')
+                f'{p.integrator} x{p.substeps}/{p.solver} {p.iterations}x{p.ls_iterations}, caps {p.contact_caps}, '
+                f'impl={p.impl})')

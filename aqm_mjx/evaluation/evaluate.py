@@ -21,6 +21,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from aqm_mjx import envs as envs_lib
 from aqm_mjx.agent.rollout import make_host_rollout, make_rollout
 from aqm_mjx.agent.rules import LEG_FIELDS, MAX_LEGS, AgentConfig
 from aqm_mjx.evaluation import calibration
@@ -99,17 +100,19 @@ def chunking(n: int, envs: int, n_dev: int = 1) -> tuple:
 
 
 def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional[Mesh] = None,
-                 backend: str = 'mjx', workers: int = 0):
+                 backend: str = 'mjx', workers: int = 0, physics: Optional[str] = None):
     """The evaluation of one chunk: ``(aux, graph, inputs) -> dict`` of
     :func:`aqm_mjx.agent.rollout.make_rollout`. ``backend='mjx'``: one jitted program, the
     environment axis sharded over ``mesh`` (``aux`` and ``graph`` replicated); ``'ogbench'``: a
     :class:`HostProgram` (OGBench's environments on the host, ``workers`` processes). Either reports
     its steps to :data:`HOOK` every :data:`aqm_mjx.progress.EVERY` control steps, so the bar moves
-    during a chunk."""
+    during a chunk. ``physics``: the MJX physics preset (:mod:`aqm_mjx.envs.physics`; None: ``env``'s own)."""
     if backend == 'ogbench':
         return HostProgram(env, agent, cfg, steps, workers)
     if backend != 'mjx':
         raise ValueError(f"unknown backend {backend!r}; expected 'mjx' or 'ogbench'")
+    if physics is not None:
+        env = envs_lib.with_physics(env, physics)
     run = make_rollout(env, agent, cfg, steps, progress=HOOK)
     if mesh is None:
         return jax.jit(run)
@@ -147,10 +150,16 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     table = eps.table
     mesh = device_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
-    chunk, n_chunks = chunking(len(table.task), int(protocol.envs), n_dev)
+    envs = int(protocol.envs)
+    if envs == 0 and protocol.backend == 'mjx':  # chosen from the memory estimate
+        from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
+
+        envs = memory.fitting_envs(envs_lib.with_physics(env, protocol.physics_preset)) * n_dev
+    chunk, n_chunks = chunking(len(table.task), envs or len(table.task), n_dev)
     owned = program is None
     if owned:
-        program = make_program(env, agent, cfg, eps.steps, mesh, protocol.backend, protocol.workers)
+        program = make_program(env, agent, cfg, eps.steps, mesh, protocol.backend, protocol.workers,
+                               protocol.physics_preset)
     key = jax.random.PRNGKey(0) if key is None else key
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec('env'))
     aux, graph = jax.device_put((agent.aux, graph), rep)
@@ -202,6 +211,8 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
         bar.close()
     timing['total_s'] = time.perf_counter() - t0
     timing['backend'] = 'ogbench' if isinstance(program, HostProgram) else 'mjx'
+    timing['physics'] = ('ogbench (OGBench\'s environments)' if timing['backend'] == 'ogbench'
+                         else envs_lib.physics_presets.describe(protocol.physics_preset))
     timing['progress_callbacks'] = ticks.calls
     timing['env_steps_per_s_after_first_chunk'] = (
         (n_chunks - 1) * chunk * eps.steps / (timing['total_s'] - timing['first_chunk_s']) if n_chunks > 1 else None)

@@ -30,6 +30,7 @@ from aqm_mjx.agent.rollout import EpisodeInputs, episode_inputs, episode_keys
 from aqm_mjx.agent.rules import stall_kappa
 from aqm_mjx.config import option
 from aqm_mjx.envs import mazes
+from aqm_mjx.envs import physics as physics_presets
 
 AQM, FLAT, NO_PRUNING = 'aqm', 'flat', 'no-pruning'
 PLANNER = 'planner'  # the one row of a method with its own test-time rule (GAS's, HILP's planning; no budgets)
@@ -51,13 +52,17 @@ class ProtocolConfig:
     episodes: int = option(50, 'episodes per task, agent and layout (OGBench: 50)')
     tasks: tuple[int, ...] = option((), "task ids to run; empty: all of the maze's (1..5)")
     horizon: int = option(0, "control steps per episode; 0: the environment's limit (1000 for the ant)")
-    envs: int = option(1024, 'environments per jitted call; the episode table runs in chunks of this size')
+    envs: int = option(1024, 'environments per jitted call; the episode table runs in chunks of this size (0: as '
+                       'many as the memory estimate allows, at most 65,536, one compile)')
     ablations: tuple[str, ...] = option((NO_PRUNING, FLAT), "agents run beside AQM on the same episodes: "
                                         "'no-pruning', 'flat', 'kappa=X' (the fixed budget at slack X), "
                                         "'stall=P' (the stall rule at patience P)")
     backend: str = option('mjx', "physics of the episodes: 'mjx' (our MJX copy: one jitted program, any device) or "
                           "'ogbench' (OGBench's own MuJoCo environments stepped on the host, the agent one jitted "
                           "call per control step)", choices=BACKENDS)
+    physics_preset: str = option('ogbench', "backend 'mjx': the physics of our MJX copy, a named setting of the "
+                                 "fidelity study (RESULTS 7.6): 'ogbench' (OGBench's: RK4, Newton 100/50) or 'fast' "
+                                 "(the study's choice), or another of its rows", choices=physics_presets.NAMES)
     workers: int = option(0, "backend 'ogbench': processes that step the environments (0: this process)")
     calibrate: str = option('none', "the AQM row's budget in the controller's own time: 'none' (agent.kappa and "
                             "agent.patience as set), 'fixed' (kappa) or 'stall' (patience) from a no-pruning pass on "
@@ -78,7 +83,10 @@ class ProtocolConfig:
 
     def __post_init__(self):
         cfg_lib.check_types(self)
-        cfg_lib.check_positive_int(self, 'episodes', 'envs', 'calibration_episodes')
+        cfg_lib.check_positive_int(self, 'episodes', 'calibration_episodes')
+        if isinstance(self.envs, bool) or not isinstance(self.envs, int) or self.envs < 0:
+            raise ValueError(f'ProtocolConfig.envs must be an integer >= 0 (0: chosen from the memory estimate); '
+                             f'got {self.envs!r}')
         cfg_lib.check_choice(type(self).__name__, 'calibrate', self.calibrate, CALIBRATE)
         cfg_lib.check_choice(type(self).__name__, 'split', self.split, SPLITS)
         if not 0.0 < self.false_alarm < 1.0:
@@ -89,6 +97,9 @@ class ProtocolConfig:
         if self.curve_backend not in ('',) + BACKENDS:
             raise ValueError(f'unknown ProtocolConfig.curve_backend {self.curve_backend!r}; expected one of '
                              f'{", ".join(BACKENDS)} or empty (the protocol\'s backend)')
+        if self.physics_preset not in physics_presets.NAMES:
+            raise ValueError(f'unknown ProtocolConfig.physics_preset {self.physics_preset!r}; expected one of '
+                             f'{", ".join(physics_presets.NAMES)} (the fidelity study\'s rows, RESULTS 7.6)')
         if self.backend not in BACKENDS:
             raise ValueError(f'unknown ProtocolConfig.backend {self.backend!r}; expected one of {", ".join(BACKENDS)}')
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:

@@ -19,6 +19,7 @@ batch (1.0 = walls cost nothing).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -33,6 +34,7 @@ import numpy as np
 from aqm_mjx import envs
 from aqm_mjx._mjx import mjx
 from aqm_mjx.envs import locomaze, mazes
+from aqm_mjx.envs import physics as physics_presets
 
 
 def _batched(tree, b):
@@ -88,11 +90,11 @@ def bench_mujoco(maze, steps, physics):
     ctrl = rng.uniform(-1, 1, (steps, m.nu))
     for k in range(10):  # settle
         d.ctrl[:] = ctrl[k]
-        mujoco.mj_step(m, d, nstep=5)
+        mujoco.mj_step(m, d, nstep=physics.substeps)
     t0 = time.perf_counter()
     for k in range(steps):
         d.ctrl[:] = ctrl[k]
-        mujoco.mj_step(m, d, nstep=5)
+        mujoco.mj_step(m, d, nstep=physics.substeps)
     one = steps / (time.perf_counter() - t0)
     rollout_rate = None
     try:
@@ -103,14 +105,14 @@ def bench_mujoco(maze, steps, physics):
         state0 = np.zeros((n_roll, mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)))
         mujoco.mj_getState(m, d, state0[0], mujoco.mjtState.mjSTATE_FULLPHYSICS)
         state0[:] = state0[0]
-        nstep = 5 * max(steps // n_roll, 20)
-        ctrl_r = np.repeat(rng.uniform(-1, 1, (n_roll, nstep // 5, m.nu)), 5, axis=1)
+        nstep = physics.substeps * max(steps // n_roll, 20)
+        ctrl_r = np.repeat(rng.uniform(-1, 1, (n_roll, nstep // physics.substeps, m.nu)), physics.substeps, axis=1)
         datas = [mujoco.MjData(m) for _ in range(n_threads)]
         with rollout.Rollout(nthread=n_threads) as r:
             r.rollout([m] * n_roll, datas, state0, ctrl_r)  # warm-up
             t0 = time.perf_counter()
             r.rollout([m] * n_roll, datas, state0, ctrl_r)
-            rollout_rate = n_roll * nstep / 5 / (time.perf_counter() - t0)
+            rollout_rate = n_roll * nstep / physics.substeps / (time.perf_counter() - t0)
     except Exception as e:  # pragma: no cover - older mujoco without the Rollout class
         print(f'  (mujoco.rollout unavailable: {e})')
     return one, rollout_rate
@@ -121,8 +123,10 @@ def main(argv=None):
     p.add_argument('--batches', type=int, nargs='+', default=[1, 64, 256], help='environment batch sizes')
     p.add_argument('--mazes', nargs='+', default=['medium', 'large', 'giant'], help='mazes to time')
     p.add_argument('--iters', type=int, default=5, help='timed control steps per measurement')
-    p.add_argument('--iterations', type=int, default=100, help='solver iterations (OGBench: 100)')
-    p.add_argument('--ls-iterations', type=int, default=50, help='line-search iterations (OGBench: 50)')
+    p.add_argument('--physics-preset', default='ogbench', choices=list(physics_presets.NAMES),
+                   help="named physics (aqm_mjx.envs.physics): 'ogbench' (RK4, Newton 100/50), 'fast', ...")
+    p.add_argument('--iterations', type=int, default=None, help="solver iterations (default: the preset's)")
+    p.add_argument('--ls-iterations', type=int, default=None, help="line-search iterations (default: the preset's)")
     p.add_argument('--impl', default='jax', choices=['jax', 'warp'], help='MJX implementation')
     p.add_argument('--mujoco-steps', type=int, default=2000, help='control steps for the plain MuJoCo rows')
     p.add_argument('--json', default=None, help='also write the rows to this JSON file')
@@ -130,38 +134,42 @@ def main(argv=None):
     # The three mazes compile to the same program (the grid is an argument): let the cache see it.
     jax.config.update('jax_compilation_cache_dir', os.path.expanduser('~/.cache/aqm_mjx/jax'))
     jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
-    physics = dict(iterations=a.iterations, ls_iterations=a.ls_iterations, impl=a.impl)
+    chosen = dataclasses.replace(physics_presets.get(a.physics_preset), impl=a.impl,
+                                 **{k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations))
+                                    if v is not None})
+    physics = dict(physics=chosen)
+    sub = chosen.substeps
     dev = jax.devices()[0]
     print(f'# bench_env: {dev.platform} {dev.device_kind}, {os.cpu_count()} CPU cores, {platform.processor() or platform.machine()}')
-    print(f'# physics: RK4, Newton {a.iterations}/{a.ls_iterations}, 5 substeps per control step, impl={a.impl}, '
-          f'random actions in contact, {a.iters} timed control steps per row')
+    print(f'# physics: {physics_presets.describe(chosen)}, random actions in contact, {a.iters} timed control '
+          'steps per row')
     rows = []
     print(f'{"system":<26}{"batch":>7}{"compile s":>11}{"control/s":>12}{"physics/s":>12}{"x ant alone":>13}')
     for b in a.batches:
         base_env = envs.make('antmaze-medium', **physics)
         c, alone = bench_mjx(base_env, b, a.iters, alone=True)
         rows.append(dict(system='mjx ant alone', batch=b, compile_s=c, control_per_s=alone))
-        print(f'{"mjx ant alone":<26}{b:>7}{c:>11.1f}{alone:>12.0f}{5 * alone:>12.0f}{1.0:>13.2f}', flush=True)
+        print(f'{"mjx ant alone":<26}{b:>7}{c:>11.1f}{alone:>12.0f}{sub * alone:>12.0f}{1.0:>13.2f}', flush=True)
         for maze in a.mazes:
             env = envs.make(f'antmaze-{maze}', **physics)
             c, rate = bench_mjx(env, b, a.iters)
             rows.append(dict(system=f'mjx antmaze-{maze}', batch=b, compile_s=c, control_per_s=rate, ratio=alone / rate))
-            print(f'{"mjx antmaze-" + maze:<26}{b:>7}{c:>11.1f}{rate:>12.0f}{5 * rate:>12.0f}{alone / rate:>13.2f}', flush=True)
-    ref_physics = locomaze.PhysicsOptions(iterations=a.iterations, ls_iterations=a.ls_iterations)
+            print(f'{"mjx antmaze-" + maze:<26}{b:>7}{c:>11.1f}{rate:>12.0f}{sub * rate:>12.0f}{alone / rate:>13.2f}', flush=True)
+    ref_physics = dataclasses.replace(chosen, impl='jax')
     for maze in a.mazes:
         one, roll = bench_mujoco(maze, a.mujoco_steps, ref_physics)
         rows.append(dict(system=f'mujoco 1 thread {maze}', control_per_s=one))
-        print(f'{"mujoco 1 thread " + maze:<26}{1:>7}{"-":>11}{one:>12.0f}{5 * one:>12.0f}{"":>13}')
+        print(f'{"mujoco 1 thread " + maze:<26}{1:>7}{"-":>11}{one:>12.0f}{sub * one:>12.0f}{"":>13}')
         if roll:
             rows.append(dict(system=f'mujoco.rollout {maze}', control_per_s=roll, threads=os.cpu_count()))
-            print(f'{"mujoco.rollout " + maze:<26}{os.cpu_count():>7}{"-":>11}{roll:>12.0f}{5 * roll:>12.0f}{"":>13}')
+            print(f'{"mujoco.rollout " + maze:<26}{os.cpu_count():>7}{"-":>11}{roll:>12.0f}{sub * roll:>12.0f}{"":>13}')
     best = max((r for r in rows if r['system'].startswith('mjx antmaze-large')), key=lambda r: r['control_per_s'])
     ref = next(r for r in rows if r['system'] == 'mujoco 1 thread large')
     print(f'# best MJX large-maze rate {best["control_per_s"]:.0f} control steps/s at batch {best["batch"]} = '
           f'{best["control_per_s"] / ref["control_per_s"]:.2f}x plain MuJoCo on one thread')
     if a.json:
         with open(a.json, 'w') as f:
-            json.dump(dict(device=str(dev), physics=physics, rows=rows), f, indent=1)
+            json.dump(dict(device=str(dev), physics=physics_presets.describe(chosen), rows=rows), f, indent=1)
 
 
 if __name__ == '__main__':

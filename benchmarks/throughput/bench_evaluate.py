@@ -2,6 +2,7 @@
 
     python benchmarks/throughput/bench_evaluate.py                              # CPU: about 15 minutes
     python benchmarks/throughput/bench_evaluate.py --batches 1024 4096 16384 65536 --steps 100   # on a GPU
+    python benchmarks/throughput/bench_evaluate.py --physics-preset fast --batches 16384 --steps 3   # 16k on a CPU
 
 Rows, control steps/s summed over the batch (compile printed apart; the first call compiles and
 runs, the second, with new keys, is timed alone):
@@ -35,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from aqm_mjx import envs
+from aqm_mjx.envs import physics
 from aqm_mjx.agent import oracle, rollout
 from aqm_mjx.agent.rules import AgentConfig
 from aqm_mjx.learn import fit, methods
@@ -139,12 +141,15 @@ def main():
     p.add_argument('--checkpoint', default=None, help='a trained run folder (default: random cpu-preset weights)')
     p.add_argument('--ogbench-steps', type=int, default=2000)
     p.add_argument('--impl', default='jax', choices=['jax', 'warp'], help="MJX implementation ('warp': MuJoCo Warp, NVIDIA)")
-    p.add_argument('--iterations', type=int, default=100, help='solver iterations (OGBench: 100)')
-    p.add_argument('--ls-iterations', type=int, default=50, help='line-search iterations (OGBench: 50)')
+    p.add_argument('--physics-preset', default='ogbench', choices=list(physics.NAMES),
+                   help="named physics (aqm_mjx.envs.physics): 'ogbench' (RK4, Newton 100/50) or 'fast', ...")
+    p.add_argument('--iterations', type=int, default=None, help="solver iterations (default: the preset's)")
+    p.add_argument('--ls-iterations', type=int, default=None, help="line-search iterations (default: the preset's)")
     p.add_argument('--out', default=None, help='JSON file for the rows')
     a = p.parse_args()
-    env = envs.make(a.env, impl=a.impl, iterations=a.iterations, ls_iterations=a.ls_iterations)
-    print(f'{a.env}: impl {a.impl}, Newton {a.iterations}/{a.ls_iterations}', flush=True)
+    solver = {k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations)) if v is not None}
+    env = envs.make(a.env, physics=a.physics_preset, impl=a.impl, **solver)
+    print(f'{a.env}: physics {physics.describe(env.physics)}', flush=True)
     agent, graph, trained = make_agent(env, a.checkpoint, a.keypoints)
     radius = 1.0
     if a.switch_quantile > 0:
