@@ -326,7 +326,7 @@ def test_calibration_never_draws_an_evaluation_task_or_key(monkeypatch):
     seen = {}
 
     def fake_evaluate(env_, agent, graph, cfg, proto, variants=None, key=None, episodes=None, **kw):
-        seen.update(episodes=episodes, key=key, kappa=cfg.kappa)
+        seen.update(episodes=episodes, key=key, kappa=cfg.kappa, label=kw.get('label'))
         legs = np.tile(np.array([[10.0, 12.0, 3.0, 1.0]], np.float32), (len(episodes.table.task), 1, 1))
         return types.SimpleNamespace(legs=legs, table=episodes.table)
 
@@ -334,6 +334,7 @@ def test_calibration_never_draws_an_evaluation_task_or_key(monkeypatch):
     out = evaluate.calibration_pass(env, types.SimpleNamespace(plans=True, prunes=True), None, AgentConfig(kappa=1.0), p, key,
                                     progress=False)
     assert np.isinf(seen['kappa']) and (seen['episodes'].table.task == 0).all()
+    assert seen['label'] == 'calibration pass'  # its progress bar is not read as a second evaluation
     assert np.asarray(seen['key']).tobytes() == np.asarray(jax.random.fold_in(key, protocol.CALIBRATION_FOLD)).tobytes()
     np.testing.assert_array_equal(protocol.table_inputs(seen['episodes'], seen['key']).cells, inputs.cells)
     assert out['patience'] == 3.0 and out['kappa_edges'] == pytest.approx(0.2) and out['legs'] == 300

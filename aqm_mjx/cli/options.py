@@ -24,6 +24,8 @@ def section_options(p: argparse.ArgumentParser) -> None:
             kw = dict(dest=f'{section}.{f.name}', default=None, help=f.metadata.get('help', ''))
             if f.metadata.get('choices'):
                 kw['choices'] = list(f.metadata['choices'])
+                if '' in kw['choices']:  # an empty choice ('': the default) reads as '{,mjx,ogbench}' in help
+                    kw['metavar'] = '{' + ','.join(c for c in kw['choices'] if c) + '}'
             if isinstance(f.default, tuple):
                 kw['nargs'] = '*'
             g.add_argument('--' + f.name.replace('_', '-'), **kw)

@@ -126,7 +126,7 @@ def make_program(env, agent: Agent, cfg: AgentConfig, steps: int, mesh: Optional
 def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.ProtocolConfig,
              variants: Optional[dict] = None, key: Optional[jax.Array] = None, mesh: Optional[Mesh] = None,
              progress: bool = True, program=None, budgets: Optional[dict] = None,
-             episodes: Optional[proto.Episodes] = None) -> Results:
+             episodes: Optional[proto.Episodes] = None, label: str = 'evaluate') -> Results:
     """Run the protocol: every agent x layout x task x episode, in chunks of ``protocol.envs``.
 
     Args:
@@ -143,6 +143,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
         budgets: ``{kind: (kappa, patience)}`` of the rows that take a calibrated budget (e.g.
             ``'paper=cal'``), from :func:`calibration_pass`.
         episodes: an episode table to run instead of the protocol's (the calibration pass's).
+        label: what the progress bar says this pass is (``'calibration pass'`` for that pass).
     """
     eps = episodes if episodes is not None else proto.plan_episodes(
         env, protocol, cfg.kappa, variants, plans=agent.plans, patience=cfg.patience, cut_slack=cfg.cut_slack,
@@ -175,7 +176,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     if progress:
         from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
-        bar = tqdm(total=n, desc=f'evaluate {env.name}', unit='ep', bar_format=BAR_FORMAT)
+        bar = tqdm(total=n, desc=f'{label} {env.name}', unit='ep', bar_format=BAR_FORMAT)
     ticks = ChunkBar(bar)
     HOOK.target = ticks
     t0 = time.perf_counter()
@@ -265,7 +266,7 @@ def calibration_pass(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol
     eps = proto.calibration_episodes(env, protocol, layout)
     res = evaluate(env, agent, graph, dataclasses.replace(cfg, kappa=math.inf, patience=0.0),
                    proto.calibration_protocol(protocol), key=jax.random.fold_in(key, proto.CALIBRATION_FOLD),
-                   mesh=mesh, progress=progress, program=program, episodes=eps)
+                   mesh=mesh, progress=progress, program=program, episodes=eps, label='calibration pass')
     c = calibration.calibrate(res.legs, protocol.false_alarm, stall_scale=protocol.stall_scale)
     kappa, patience = calibration.budget(c, rule, cfg.kappa, cfg.patience)
     budgets = {k: (float(a), float(b)) for k, (a, b) in calibration.row_budgets(c, cfg.kappa, cfg.patience).items()}
