@@ -216,7 +216,8 @@ def expert(settings, a, log):
                          waypoint_episodes=int(len(success)),
                          waypoint_steps=round(float(steps[success > 0].mean()), 1) if success.any() else None,
                          data_goals_per_episode=round(float(res.stats['goals_reached_mean']), 2),
-                         data_flips=int(res.stats['flipped_episodes']), data_episodes=int(a.collect_episodes),
+                         data_flips=int(res.stats['flipped_episodes']),  # training and validation episodes
+                         data_episodes=int(res.stats['episodes'] + res.stats['val_episodes']),
                          data_speed=round(float(np.linalg.norm(np.diff(q[:, :, :2], axis=1), axis=-1).mean() / 0.1), 3),
                          data_cells=len(cells), seconds=round(time.perf_counter() - t0, 1)))
         log(json.dumps(rows[-1]))
@@ -290,7 +291,13 @@ def closed(settings, a, log):
 
     runs = [('ogbench backend', 'ogbench', physics.OGBENCH)] + [(f'mjx {s}', 'mjx', s) for s in settings]
     rows = []
-    for label, backend, name in runs:
+    if a.reference:  # the reference's rows from an earlier run of the same episodes
+        with open(a.reference) as f:
+            rows = [r for r in json.load(f)['rows'] if r.get('part') == 'closed' and r['backend'] == 'ogbench']
+        if not rows:
+            raise SystemExit(f'--reference {a.reference}: no closed-loop rows of the ogbench backend in it')
+        log(f'ogbench backend: its rows from {a.reference}')
+    for label, backend, name in runs[1:] if rows else runs:
         t0 = time.perf_counter()
         over = [f'protocol.backend={backend}', f'protocol.physics_preset={name}',
                 f'protocol.episodes={a.closed_episodes}', f'protocol.envs={a.closed_envs}',
@@ -352,6 +359,9 @@ def main(argv=None):
     p.add_argument('--closed-envs', type=int, default=250, help='closed: environments per jitted chunk')
     p.add_argument('--shift', default='closures')
     p.add_argument('--ablations', nargs='*', default=[], help="closed: rows beside AQM ('no-pruning', 'flat')")
+    p.add_argument('--reference', default=None,
+                   help="closed: fidelity.json of an earlier closed run with the same episodes: its ogbench-backend "
+                        'rows are the reference instead of running them again')
     p.add_argument('--eval-seed', type=int, default=0)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--tiny', action='store_true', help='every part at a few steps and episodes (the script\'s test)')
