@@ -36,6 +36,9 @@ LOOP = {
 # A run's sections beside training. 'collect_episodes' is the data a run collects when no --dataset or
 # --collect-episodes is given (100 where a row does not say), 'collect_physics' the physics it collects in
 # ('mjx' where a row does not say; 'mujoco': MuJoCo's C library on the host, 6-8x faster on a CPU).
+# 'host_evaluation': True where the row's evaluation, on a host without an accelerator, runs in OGBench's
+# own environments (backend 'ogbench', 8x faster than MJX on a 2-core CPU, RESULTS 7.4) unless the user
+# names a backend or an MJX physics; with an accelerator it stays in MJX.
 
 # The replanning rule of the cpu and cpu-long rows, written once: map and agent values measured at the cpu
 # scale (RESULTS.md section 3.4); the AQM row on the stall rule with parallel cuts 0.6 (the paper's single
@@ -46,7 +49,8 @@ LOOP = {
 # in OGBench's environments (on a 2-core CPU about 8 s a point there, 33 s in MJX)
 _CPU_RULE = dict(map=dict(delta=8.0), agent=dict(kappa=1.0, switch_radius=10.0, cut_slack=0.6),
                  protocol=dict(episodes=4, envs=64, calibrate='stall', stall_scale=6.0, curve_episodes=2,
-                               curve_backend='ogbench'))
+                               curve_backend='ogbench'),
+                 host_evaluation=True)
 
 RUN = {
     # the wiring, not the skill: 4 collected episodes, 200 updates, 60-step episodes (compiling dominates)
@@ -66,7 +70,7 @@ RUN = {
     'cpu-giant': dict(map=dict(delta=12.0, max_keypoints=512), agent=dict(kappa=1.0, switch_radius=10.0),
                       protocol=dict(episodes=10, envs=64, calibrate='stall', curve_episodes=2,
                                     curve_backend='ogbench'),
-                      collect_episodes=400),
+                      collect_episodes=400, host_evaluation=True),
     # the paper's sizes (Appendix 10): delta 10 (its best in Figure 10, swept 10-25), OGBench's 50 episodes
     'paper': dict(map=dict(delta=10.0), agent=dict(kappa=0.25, switch_radius=5.0),
                   protocol=dict(episodes=50, envs=1024, curve_episodes=10)),
@@ -127,3 +131,9 @@ def collect_physics(name: str) -> str:
     """The physics a run of preset ``name`` collects its data in when the user names none: ``'mjx'`` or
     ``'mujoco'`` (the host)."""
     return RUN[check(name)].get('collect_physics', 'mjx')
+
+
+def host_evaluation(name: str) -> bool:
+    """Whether a run of preset ``name`` evaluates in OGBench's environments on a host without an
+    accelerator when the user names no backend (the ``cpu`` rows)."""
+    return bool(RUN[check(name)].get('host_evaluation', False))

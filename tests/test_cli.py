@@ -172,7 +172,7 @@ _CACHED_PROGRAM = '''
 import sys
 if sys.argv[1] == 'cli':
     from aqm_mjx import cli
-    cli.build_parser()          # imports the configs, and jax, as every command does
+    cli.build_parser()          # the parser alone: the command then imports jax
     cli.enable_compile_cache()
 import jax, jax.numpy as jnp
 jax.config.update('jax_compilation_cache_dir', sys.argv[2])
@@ -269,3 +269,79 @@ def test_dependencies_are_ranges_that_the_installed_versions_meet():
     spec = {d.name: str(d.specifier) for d in deps}
     assert spec['mujoco'] == spec['mujoco-mjx']
     assert not Requirement(f'jax{spec["jax"]}').specifier.contains('0.10.2')  # the miscompiling release
+
+
+def test_cpu_presets_evaluate_in_ogbench_environments_on_a_host_without_an_accelerator(tmp_path, monkeypatch,
+                                                                                        capsys):
+    """The rule of the cpu rows: on a CPU-only host `run` and `evaluate` evaluate in OGBench's own
+    environments unless the user names a backend or an MJX physics; ci and paper rows, --one-program
+    and an accelerator keep MJX. run.json records the backend the run uses."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx import assess, files  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.cli import commands  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
+
+    host = ['protocol.backend=ogbench']
+    assert jax.default_backend() == 'cpu'
+    for preset in ('cpu', 'cpu-long', 'cpu-giant'):
+        assert commands.host_backend([preset], []) == host
+        assert commands.host_backend([preset], ['protocol.physics_preset=ogbench', 'map.delta=6']) == host
+    for overrides in (['protocol.backend=mjx'], ['backend=mjx'], ['protocol.backend=ogbench'],
+                      ['protocol.physics_preset=fast'], ['physics_preset=newton-4']):
+        assert commands.host_backend(['cpu-long'], overrides) == [], overrides
+    assert commands.host_backend(['ci'], []) == commands.host_backend(['paper'], []) == []
+    assert commands.host_backend(['cpu-long', 'ci'], []) == []
+    with monkeypatch.context() as m:
+        m.setattr(jax, 'default_backend', lambda: 'gpu')
+        assert commands.host_backend(['cpu-long'], []) == []
+
+    class Stop(Exception):
+        pass
+
+    monkeypatch.setattr(collect, 'collect', lambda *a, **k: (_ for _ in ()).throw(Stop()))
+    for i, (argv, want) in enumerate([(['--preset', 'cpu-long'], 'ogbench'), (['--preset', 'ci'], 'mjx'),
+                                      (['--preset', 'cpu-long', '--backend', 'mjx'], 'mjx'),
+                                      (['--preset', 'cpu', '--physics-preset', 'fast'], 'mjx')]):
+        out = tmp_path / f'run{i}'
+        with pytest.raises(Stop):
+            cli.main(['run', '--env', 'pointmaze-medium', '--out', str(out), *argv])
+        assert files.read_json(str(out / 'run.json'))['protocol']['backend'] == want, argv
+        header = capsys.readouterr().out
+        assert ("in OGBench's environments on the host (no accelerator" in header) == (i == 0), header
+
+    seen = []
+    monkeypatch.setattr(assess, 'evaluate_checkpoint', lambda *a, overrides=(), **k: seen.append(list(overrides)))
+    ship = os.path.join(os.path.dirname(os.path.dirname(__file__)), 'checkpoints',
+                        'aqm-antmaze-medium-navigate-cpu-long')
+    assert cli.main(['evaluate', '--checkpoint', ship, '--out', str(tmp_path / 'ev')]) == 0
+    assert cli.main(['evaluate', '--checkpoint', ship, '--backend', 'mjx', '--out', str(tmp_path / 'ev')]) == 0
+    assert cli.main(['evaluate', '--checkpoint', ship, '--preset', 'ci', '--out', str(tmp_path / 'ev')]) == 0
+    assert [host[0] in s for s in seen] == [True, False, False]
+
+
+def test_the_parser_imports_no_jax_answers_at_once_and_errors_in_one_line():
+    """--help and a wrong argument come from the stored catalog (no JAX, MuJoCo or numpy imported),
+    the catalog is the package's own lists, and a usage error is one line naming the problem."""
+    import time  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx.cli import catalog  # pylint: disable=import-outside-toplevel
+
+    assert catalog.load() == catalog.build(), \
+        "cli/catalog.json is stale: python -c 'from aqm_mjx.cli import catalog; catalog.write()'"
+    probe = ('import sys; from aqm_mjx.cli import build_parser; build_parser().parse_args(["run"]); '
+             'print(sorted(m for m in ("jax", "mujoco", "flax", "numpy", "matplotlib") if m in sys.modules))')
+    out = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == '[]', out.stdout
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', 'evaluate', '--help'], capture_output=True, text=True)
+    took = time.perf_counter() - t0
+    assert r.returncode == 0 and '--physics-preset' in r.stdout and '--max-keypoints' in r.stdout
+    assert took < 3.0, f'evaluate --help took {took:.1f} s'  # about 0.1 s alone; generous for a loaded CI
+    for argv, says in ((['run', '--preset', 'nope'], "argument --preset: invalid choice: 'nope'"),
+                       (['train'], 'the following arguments are required: --dataset, --out'),
+                       (['evaluate', '--checkpoint', 'x', '--episodes'], 'argument --episodes: expected one argument')):
+        r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', *argv], capture_output=True, text=True)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and says in lines[0], r.stderr
+        assert lines[0].startswith(f'aqm-mjx {argv[0]}: error:') and f'see aqm-mjx {argv[0]} --help' in lines[0]

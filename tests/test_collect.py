@@ -183,6 +183,31 @@ def test_host_physics_starts_each_episode_where_mjx_does_and_follows_the_same_ex
         collect.CollectConfig(physics='warp').resolved()
 
 
+def test_host_threads_step_the_same_episodes_bit_for_bit(monkeypatch):
+    """The host's episodes of a batch stepped by several threads (each MjData in one thread's slice) are
+    the single thread's exactly, for the ant with its contacts; an odd batch over more threads than
+    episodes still steps every one; a thread's exception reaches the caller; threads < 0 is refused."""
+    ant = envs.make('antmaze-medium', max_episode_steps=40, terminate_at_goal=False)
+    keys = jax.random.split(jax.random.PRNGKey(1), 5)
+    one = collect.HostEpisodes(ant, 'navigate', 40, 0.2, threads=1)(keys)
+    for threads in (2, 3, 8):
+        many = collect.HostEpisodes(ant, 'navigate', 40, 0.2, threads=threads)(keys)
+        for k in ('observations', 'actions', 'qpos', 'qvel', 'upright', 'goals_reached'):
+            np.testing.assert_array_equal(many[k], one[k], err_msg=f'{k}, {threads} threads')
+    assert np.abs(one['qpos'][:, -1, :2] - one['qpos'][:, 0, :2]).max() > 1.0  # the ants did walk
+    assert collect.HostEpisodes(ant, 'navigate', 40, 0.2).threads == collect.host_cores() >= 1
+    host = collect.HostEpisodes(ant, 'navigate', 40, 0.2, threads=2)
+
+    def broken(d, a):
+        raise RuntimeError('mj_step failed')
+
+    monkeypatch.setattr(host, '_step', broken)
+    with pytest.raises(RuntimeError, match='mj_step failed'):
+        host(keys)
+    with pytest.raises(ValueError, match='threads must be >= 0'):
+        collect.CollectConfig(threads=-1).resolved()
+
+
 def test_host_collection_writes_the_file_mjx_would_and_records_its_physics(tmp_path):
     cfg = collect.CollectConfig(env='pointmaze-medium', style='stitch', episodes=10, steps=100, batch=4, physics='mujoco')
     res = collect.collect(cfg, progress=False)

@@ -12,9 +12,9 @@ import sys
 
 # Loading a cached CPU executable makes XLA log E-level "Target machine feature +prefer-no-gather is
 # not supported" lines listing ~150 CPU features (tuning flags differ, the code runs). Quiet XLA's C++
-# log unless the user chose a level. XLA reads the level once, when jaxlib loads, and building the
-# parser imports the configs (and jax), so it is set here, before anything else. Python-side errors
-# are unaffected.
+# log unless the user chose a level. XLA reads the level once, when jaxlib loads (a command imports it
+# after parsing its arguments; the parser reads cli/catalog.json and imports no JAX), so it is set
+# here, before anything else. Python-side errors are unaffected.
 os.environ.setdefault('TF_CPP_MIN_LOG_LEVEL', '3')
 
 from aqm_mjx.cli.commands import (collect_episodes_of, collect_physics_of, enable_compile_cache,  # noqa: E402,F401

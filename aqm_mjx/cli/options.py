@@ -1,50 +1,48 @@
 """The ``aqm-mjx`` options: one subcommand per job. The options of the map, agent and protocol
 sections are built from the fields of their configs (help, choices and types included); every default
-comes from :mod:`aqm_mjx.presets` or a config class.
+comes from :mod:`aqm_mjx.presets` or a config class. The lists come from :mod:`aqm_mjx.cli.catalog`,
+so that building the parser imports no JAX: ``--help`` and a wrong argument answer at once.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 from aqm_mjx import presets
-from aqm_mjx.cli import commands
+from aqm_mjx.cli import catalog, commands
 
 
-def section_options(p: argparse.ArgumentParser) -> None:
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, whose errors are one line naming the problem and where the options are
+    listed (instead of the whole usage first)."""
+
+    def error(self, message):
+        self.exit(2, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
+
+
+def section_options(p: argparse.ArgumentParser, sections: dict) -> None:
     """One option per field of the map, agent and protocol configs (``--max-keypoints``), taken as
     text and parsed by the config: unset options keep the preset's value."""
-    from aqm_mjx import pipeline  # pylint: disable=import-outside-toplevel
-
-    classes = {s: type(getattr(pipeline.RunConfig(), s)) for s in pipeline.SECTIONS}
-    for section, cls in classes.items():
-        g = p.add_argument_group(f'{section} ({cls.__name__}; default: the preset\'s)')
-        for f in dataclasses.fields(cls):
-            kw = dict(dest=f'{section}.{f.name}', default=None, help=f.metadata.get('help', ''))
-            if f.metadata.get('choices'):
-                kw['choices'] = list(f.metadata['choices'])
+    for section, entry in sections.items():
+        g = p.add_argument_group(f'{section} ({entry["cls"]}; default: the preset\'s)')
+        for f in entry['fields']:
+            kw = dict(dest=f'{section}.{f["name"]}', default=None, help=f['help'])
+            if f['choices']:
+                kw['choices'] = list(f['choices'])
                 if '' in kw['choices']:  # an empty choice ('': the default) reads as '{,mjx,ogbench}' in help
                     kw['metavar'] = '{' + ','.join(c for c in kw['choices'] if c) + '}'
-            if isinstance(f.default, tuple):
+            if f['many']:
                 kw['nargs'] = '*'
-            g.add_argument('--' + f.name.replace('_', '-'), **kw)
-
-
-
-def physics_names() -> list:
-    """The physics presets a command accepts (the fidelity study's rows)."""
-    from aqm_mjx.envs import physics  # pylint: disable=import-outside-toplevel
-
-    return list(physics.NAMES)
+            g.add_argument('--' + f['name'].replace('_', '-'), **kw)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``aqm-mjx`` command line: one subcommand per job, each with its ``fn``."""
     import aqm_mjx  # pylint: disable=import-outside-toplevel
-    from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
 
-    p = argparse.ArgumentParser(prog='aqm-mjx', description='Adaptive Quasimetric Mapping on MuJoCo MJX.')
+    known = catalog.load()
+    method_names, physics_names = known['methods'], known['physics']
+    p = Parser(prog='aqm-mjx', description='Adaptive Quasimetric Mapping on MuJoCo MJX.')
     p.add_argument('--version', action='version', version=f'aqm-mjx {aqm_mjx.__version__}')
     sub = p.add_subparsers(dest='cmd', required=True)
     r = sub.add_parser(
@@ -55,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
                     'OUT/run.json, OUT/summary.json and OUT/eval/*.png. --one-program runs training, keypoints '
                     'and evaluation as one jitted program, vmapped over --seeds.')
     r.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
-    r.add_argument('--method', default='aqm', choices=methods.names(), help='registered method (aqm-mjx methods)')
+    r.add_argument('--method', default='aqm', choices=method_names, help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default=presets.DEFAULT, choices=presets.names(),
                    help='every default of the run: cpu (minutes on a 2-core CPU: 100 MJX episodes, 20,000 '
                         'updates), cpu-long (the default: 400 episodes collected on the host, 50,000 updates: 3 + 11 '
@@ -80,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--one-program', action='store_true',
                    help='train, select keypoints and evaluate as one jitted program (no checkpoints)')
     r.add_argument('--seeds', type=int, default=1, help='with --one-program: seeds vmapped in the one program')
-    section_options(r)
+    section_options(r, known['sections'])
     r.set_defaults(fn=commands.cmd_run)
     e = sub.add_parser('envs', help='list the environments and their evaluation tasks')
     e.set_defaults(fn=commands.cmd_envs)
@@ -121,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mjx: each chunk as one jitted MJX program (any device); mujoco: MuJoCo's C library on "
                         "the host with OGBench's static walls, several times faster on a CPU (other trajectories "
                         "than MJX's; not for antmaze-teleport)")
-    c.add_argument('--physics-preset', default='ogbench', choices=physics_names(),
+    c.add_argument('--physics-preset', default='ogbench', choices=physics_names,
                    help="the physics settings of either: 'ogbench' (OGBench's: RK4, Newton 100/50), 'fast' (Newton "
                         '2/4, RESULTS 7.6) or another row of the fidelity study')
     c.add_argument('--iterations', type=int, default=None,
@@ -137,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument('--dataset', required=True, help='OGBench .npz (e.g. antmaze-large-navigate-v0.npz)')
     t.add_argument('--env', default=None,
                    help='environment; inferred from a file name such as antmaze-large-navigate-v0.npz when omitted')
-    t.add_argument('--method', default=None, choices=methods.names(),
+    t.add_argument('--method', default=None, choices=method_names,
                    help='registered method (aqm-mjx methods; default aqm)')
     t.add_argument('--preset', default=None, choices=presets.names(),
                    help='cpu: minutes on a 2-core CPU; cpu-long: 50,000 updates; cpu-giant: 150,000; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
@@ -176,7 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                "the first one's parent/comparison)")
     v.add_argument('--distributed', action='store_true',
                    help='multi-host: call jax.distributed.initialize() first (run the same command on every host)')
-    section_options(v)
+    section_options(v, known['sections'])
     v.set_defaults(fn=commands.cmd_evaluate)
     k = sub.add_parser(
         'compare', help='several methods x seeds on the same data and episodes: table and bar chart',
@@ -186,10 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
                     'and over episodes. Re-running the same command after an interrupt resumes: finished methods '
                     'are not trained or evaluated again.')
     k.add_argument('--env', default='antmaze-medium', help='environment name (see `aqm-mjx envs`)')
-    from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
-
-    k.add_argument('--methods', nargs='+', default=list(compare.DEFAULT_METHODS), choices=methods.names(),
-                   metavar='METHOD', help=f'registered methods (default: {" ".join(compare.DEFAULT_METHODS)})')
+    k.add_argument('--methods', nargs='+', default=list(known['compare_methods']), choices=method_names,
+                   metavar='METHOD', help=f'registered methods (default: {" ".join(known["compare_methods"])})')
     k.add_argument('--seeds', type=int, default=2, help='training seeds per method (vmapped)')
     k.add_argument('--seed', type=int, default=0, help='the first seed: seeds are SEED, SEED+1, ...')
     k.add_argument('--eval-seed', type=int, default=0, help='PRNGKey of the map and the episodes, shared by all')
@@ -209,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument('--backend', default=None, choices=['mjx', 'ogbench'],
                    help="physics of the evaluation: 'mjx' (default) or 'ogbench' (OGBench's own environments on "
                         'the host; same as --set protocol.backend=ogbench)')
-    k.add_argument('--physics-preset', default=None, choices=physics_names(),
+    k.add_argument('--physics-preset', default=None, choices=physics_names,
                    help="physics of the collection and of the MJX evaluation: 'ogbench' (default) or 'fast' (Newton "
                         '2/4, RESULTS 7.6); same as --set protocol.physics_preset=NAME')
     k.add_argument('--workers', type=int, default=None, help="with --backend ogbench: processes stepping the "

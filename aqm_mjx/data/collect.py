@@ -23,6 +23,7 @@ validation episodes, OGBench's ``-val`` twin.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import math
@@ -91,6 +92,9 @@ class CollectConfig:
         physics: ``'mjx'`` (one jitted MJX program) or ``'mujoco'`` (MuJoCo's C library on the host).
         physics_preset: the physics settings of either (:mod:`aqm_mjx.envs.physics`): ``'ogbench'``
             (OGBench's), ``'fast'`` or another row of the fidelity study.
+        threads: ``physics='mujoco'``: threads that step the batch's episodes (``0``: one per core this
+            process may use). MuJoCo releases Python's lock while it steps, and each episode keeps its
+            own ``MjData``, so the data are the same for every count.
     """
 
     env: str = 'antmaze-medium'
@@ -103,6 +107,7 @@ class CollectConfig:
     layout: str = 'base'
     physics: str = 'mjx'
     physics_preset: str = 'ogbench'
+    threads: int = 0
 
     def resolved(self) -> 'CollectConfig':
         """The config with OGBench's defaults filled in and every field checked."""
@@ -119,6 +124,8 @@ class CollectConfig:
             raise ValueError(f'noise must be a finite number >= 0; got {c.noise}')
         if int(c.batch) < 1:
             raise ValueError(f'batch must be >= 1; got {c.batch}')
+        if int(c.threads) < 0:
+            raise ValueError(f'threads must be >= 0 (0: one per core); got {c.threads}')
         shifts.variant(maze, c.layout)  # an unknown layout names the maze's suite
         if c.physics not in PHYSICS:
             raise ValueError(f'unknown collection physics {c.physics!r}; expected one of {", ".join(PHYSICS)}')
@@ -263,6 +270,14 @@ def episode_fn(env, style: str, steps: int, noise: float, progress: Optional[Cal
     return run
 
 
+def host_cores() -> int:
+    """The cores this process may run on (its affinity where the platform tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
 def _check_env(env, steps: int) -> None:
     if env.terminate_at_goal:
         raise ValueError('collection needs an environment built with terminate_at_goal=False')
@@ -283,7 +298,7 @@ class HostEpisodes:
     accelerator batches (``benchmarks/throughput/bench_collect.py``). The teleport maze is MJX's only.
     """
 
-    def __init__(self, env, style: str, steps: int, noise: float, grid=None):
+    def __init__(self, env, style: str, steps: int, noise: float, grid=None, threads: int = 0):
         check_style(style)
         _check_env(env, steps)
         if env.teleport:
@@ -301,6 +316,7 @@ class HostEpisodes:
         self.control = jax.jit(jax.vmap(parts.control, in_axes=(0, 0, 0, 0, 0, None, 0)))
         self.after = jax.jit(jax.vmap(parts.after))
         self.datas: list = []
+        self.threads = int(threads) or host_cores()
 
     def _step(self, d, a) -> None:
         """One control step of one episode: ``frame_skip`` physics steps (OGBench's point moves its
@@ -313,11 +329,28 @@ class HostEpisodes:
         for _ in range(self.env.frame_skip):
             mujoco.mj_step(self.model, d)
 
+    def _step_slice(self, datas, a) -> None:
+        for d, a_b in zip(datas, a):
+            self._step(d, a_b.astype(np.float64))
+
     def __call__(self, keys, progress: Optional[Callable] = None) -> dict:
-        env, n, t_all = self.env, len(keys), self.steps
+        n = len(keys)
         while len(self.datas) < n:
             self.datas.append(mujoco.MjData(self.model))
         datas = self.datas[:n]
+        # contiguous slices of the batch, one per thread; each MjData only ever steps in its own slice
+        parts = min(self.threads, n)
+        if parts <= 1:
+            return self._episodes(keys, datas, lambda a: self._step_slice(datas, a), progress)
+        bounds = np.linspace(0, n, parts + 1).astype(int)
+        slices = [slice(bounds[i], bounds[i + 1]) for i in range(parts)]
+        with concurrent.futures.ThreadPoolExecutor(parts) as pool:
+            def step(a):  # list(): an exception in a thread is raised here
+                list(pool.map(lambda sl: self._step_slice(datas[sl], a[sl]), slices))
+            return self._episodes(keys, datas, step, progress)
+
+    def _episodes(self, keys, datas, step: Callable, progress: Optional[Callable]) -> dict:
+        env, n, t_all = self.env, len(keys), self.steps
         goal_xy, phase, qpos0, qvel0, key = self.start(jnp.asarray(keys))
         qpos0, qvel0 = np.asarray(qpos0, np.float64), np.asarray(qvel0, np.float64)
         for b, d in enumerate(datas):
@@ -339,8 +372,7 @@ class HostEpisodes:
                                                              direction, t, phase)
             a = np.asarray(a)
             out['qpos'][:, t], out['qvel'][:, t], out['actions'][:, t] = qpos, qvel, a
-            for b, d in enumerate(datas):
-                self._step(d, a[b].astype(np.float64))
+            step(a)
             qpos = np.stack([d.qpos for d in datas])
             qvel = np.stack([d.qvel for d in datas])
             out['upright'][:, t] = _upright(env, qpos, np)
@@ -390,7 +422,7 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     ticks = ChunkBar(bar)
     grid = None if cfg.layout == shifts.BASE else cfg.grid()
     if cfg.physics == 'mujoco':
-        host = HostEpisodes(env, cfg.style, cfg.steps, cfg.noise, grid=grid)
+        host = HostEpisodes(env, cfg.style, cfg.steps, cfg.noise, grid=grid, threads=cfg.threads)
         run = functools.partial(host, progress=ticks)
     else:
         run = jax.jit(jax.vmap(episode_fn(env, cfg.style, cfg.steps, cfg.noise, progress=ticks, grid=grid)))

@@ -13,7 +13,8 @@ and random actions instead of the SAC expert's network (so its rate is an upper 
 Rows 'host batch B': the same episodes with ``collect --physics mujoco``
 (:class:`aqm_mjx.data.collect.HostEpisodes`: MuJoCo's C library with OGBench's static walls, one
 ``MjData`` per episode, the expert jitted over the batch once per step), timed the same way, with
-the ratio to the MJX row of the same batch.
+the ratio to the MJX row of the same batch; one row per ``--host-threads`` count (threads stepping the
+batch's episodes, the same data for every count; 0: one per core), with the ratio to one thread.
 Rows 'navigate 100K': :func:`aqm_mjx.data.collect.collect` end to end for ``--dataset-episodes`` episodes of
 1001 states plus the tenth for validation, compile included, with each ``--dataset-physics``.
 """
@@ -35,14 +36,14 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 from _report import finish  # noqa: E402
 
 
-def rate(env_name, batch, steps, physics='mjx', seed=0):
+def rate(env_name, batch, steps, physics='mjx', seed=0, threads=1):
     """The row of ``batch`` navigate episodes of ``steps`` states in ``physics`` ('mjx' or 'mujoco'): a first
     call (compile and run), then a second on new keys timed alone."""
     env = envs.make(env_name, max_episode_steps=steps, terminate_at_goal=False)
     if physics == 'mjx':
         run = jax.jit(jax.vmap(collect.episode_fn(env, 'navigate', steps, 0.2)))
     else:
-        run = collect.HostEpisodes(env, 'navigate', steps, 0.2)
+        run = collect.HostEpisodes(env, 'navigate', steps, 0.2, threads=threads)
     keys = jax.random.split(jax.random.PRNGKey(seed), 2 * batch)
     t0 = time.perf_counter()
     jax.block_until_ready(run(keys[:batch]))
@@ -50,7 +51,8 @@ def rate(env_name, batch, steps, physics='mjx', seed=0):
     t0 = time.perf_counter()
     out = jax.block_until_ready(run(keys[batch:]))
     second = time.perf_counter() - t0
-    return dict(row=f'{"mjx" if physics == "mjx" else "host"} batch {batch}', batch=batch, steps=steps,
+    name = 'mjx' if physics == 'mjx' else f'host ({run.threads} thread{"s" * (run.threads > 1)})'
+    return dict(row=f'{name} batch {batch}', batch=batch, steps=steps,
                 transitions=batch * steps, compile_s=round(first - second, 1), run_s=round(second, 2),
                 transitions_per_s=round(batch * steps / second, 1),
                 flipped=int((~np.asarray(out['upright'][:, -1])).sum()))
@@ -87,21 +89,30 @@ def main():
     p.add_argument('--dataset-batch', type=int, default=110)
     p.add_argument('--dataset-physics', nargs='*', default=['mjx', 'mujoco'], choices=collect.PHYSICS)
     p.add_argument('--no-host', action='store_true', help='skip the host rows')
+    p.add_argument('--host-threads', type=int, nargs='*', default=[1, 0],
+                   help='threads of the host rows (0: one per core)')
+    p.add_argument('--no-ogbench', action='store_true', help="skip OGBench's loop (the ratios to it too)")
     p.add_argument('--out', default=None, help='JSON file for the rows')
     a = p.parse_args()
     rows = []
-    base = ogbench_rate(a.ogbench_steps)
-    print(base, flush=True)
-    rows.append(base)
+    base = None if a.no_ogbench else ogbench_rate(a.ogbench_steps)
+    if base:
+        print(base, flush=True)
+        rows.append(base)
     for b in a.batches:
         r = rate(a.env, b, a.steps)
-        r['vs_ogbench_loop'] = round(r['transitions_per_s'] / base['transitions_per_s'], 2)
+        if base:
+            r['vs_ogbench_loop'] = round(r['transitions_per_s'] / base['transitions_per_s'], 2)
         print(r, flush=True)
         rows.append(r)
-        if not a.no_host:
-            h = rate(a.env, b, a.steps, 'mujoco')
-            h['vs_ogbench_loop'] = round(h['transitions_per_s'] / base['transitions_per_s'], 2)
+        one = None
+        for threads in [] if a.no_host else a.host_threads:
+            h = rate(a.env, b, a.steps, 'mujoco', threads=threads)
+            if base:
+                h['vs_ogbench_loop'] = round(h['transitions_per_s'] / base['transitions_per_s'], 2)
             h['vs_mjx_same_batch'] = round(h['transitions_per_s'] / r['transitions_per_s'], 2)
+            one = one or h
+            h['vs_first_host_row'] = round(h['transitions_per_s'] / one['transitions_per_s'], 2)
             print(h, flush=True)
             rows.append(h)
     for physics in a.dataset_physics if a.dataset_episodes else []:
@@ -112,7 +123,8 @@ def main():
                  transitions=s['transitions'], train_transitions=s['episodes'] * s['steps'], batch=s['batch'],
                  wall_s_incl_compile=s['wall_s'], transitions_per_s_incl_compile=round(s['transitions'] / s['wall_s'], 1),
                  goals_reached_per_episode=round(s['goals_reached_mean'], 2), flipped_episodes=s['flipped_episodes'])
-        r['vs_ogbench_loop_time'] = round((s['transitions'] / base['transitions_per_s']) / s['wall_s'], 2)
+        if base:
+            r['vs_ogbench_loop_time'] = round((s['transitions'] / base['transitions_per_s']) / s['wall_s'], 2)
         print(r, flush=True)
         rows.append(r)
     finish(rows, a.out)
