@@ -224,10 +224,12 @@ def _draw_curves(out: str, folders: dict, env_name: str, preset: str) -> None:
 
 
 def _row_faults(r: dict) -> list[str]:
-    """What in ``r['rows']`` the table could not print: per row and layout, a numeric mean, task
-    rates and seed means, and intervals that are pairs of numbers (or none)."""
-    num = lambda x: isinstance(x, (int, float)) and not isinstance(x, bool)  # noqa: E731
-    pair = lambda x: x is None or (isinstance(x, list) and len(x) == 2 and all(map(num, x)))  # noqa: E731
+    """What in ``r['rows']`` the table could not print: per row and layout, a mean, task rates and
+    seed means that are success rates (numbers in [0, 1]), and intervals that are ordered pairs of
+    rates (or none)."""
+    num = lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and 0.0 <= x <= 1.0  # noqa: E731
+    pair = lambda x: x is None or (isinstance(x, list) and len(x) == 2 and all(map(num, x))  # noqa: E731
+                                   and x[0] <= x[1])
     faults = []
     for name, row in r['rows'].items():
         for v in r.get('variants') or []:
@@ -240,7 +242,8 @@ def _row_faults(r: dict) -> list[str]:
                 bad.append('seed_means')
             bad += [k for k in ('seed_ci95', 'episodes_ci95') if not pair(cell.get(k))]
             if bad:
-                faults.append(f'row {name!r}, layout {v!r}: {", ".join(bad)} not numbers')
+                faults.append(f'row {name!r}, layout {v!r}: {", ".join(bad)} not success rates in [0, 1] '
+                              '(intervals: ordered pairs of them)')
     return faults
 
 

@@ -22,6 +22,23 @@ def test_envs_and_render(tmp_path, capsys):
     assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 5000
 
 
+def test_render_out_is_a_picture_a_folder_or_refused(tmp_path, capsys):
+    """render --out DIR writes DIR/ENV.png (not DIR.png beside it); a name without a suffix gets
+    .png and the printed path is the file written; a suffix that is no picture is refused in one line."""
+    folder = tmp_path / 'pics'
+    folder.mkdir()
+    assert cli.main(['render', '--env', 'pointmaze-medium', '--out', str(folder)]) == 0
+    assert os.listdir(folder) == ['pointmaze-medium.png'] and not (tmp_path / 'pics.png').exists()
+    assert capsys.readouterr().out.strip() == f'wrote {folder / "pointmaze-medium.png"}'
+    assert cli.main(['render', '--env', 'pointmaze-medium', '--out', str(tmp_path / 'maze')]) == 0
+    assert (tmp_path / 'maze.png').read_bytes()[:4] == b'\x89PNG' and capsys.readouterr().out.strip().endswith('maze.png')
+    assert cli.main(['render', '--env', 'pointmaze-medium', '--out', str(tmp_path / 'new') + os.sep]) == 0
+    assert (tmp_path / 'new' / 'pointmaze-medium.png').exists()
+    assert cli.main(['render', '--env', 'pointmaze-medium', '--out', str(tmp_path / 'maze.txt')]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'not .txt' in err[0] and not (tmp_path / 'maze.txt').exists()
+
+
 def test_unknown_env_is_a_clear_error(capsys):
     assert cli.main(['render', '--env', 'antmaze-huge']) == 2
     assert "unknown environment 'antmaze-huge'" in capsys.readouterr().err

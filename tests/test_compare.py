@@ -482,7 +482,16 @@ def test_merge_never_writes_into_an_input(tmp_path, capsys):
                       (json.dumps(dict(good, rows={})), "'rows' lacks method(s) ['hiql']"),
                       (json.dumps([good]), 'holds a JSON list'),
                       (json.dumps(dict(good, rows={'hiql': {'base': dict(good['rows']['hiql']['base'], mean='abc')}})),
-                       "row 'hiql', layout 'base': mean not numbers"),
+                       "row 'hiql', layout 'base': mean not success rates in [0, 1]"),
+                      # a rate of 750% (the case), a negative seed mean, an interval upside down
+                      (json.dumps(dict(good, rows={'hiql': {'base': dict(good['rows']['hiql']['base'], mean=7.5)}})),
+                       "row 'hiql', layout 'base': mean not success rates in [0, 1]"),
+                      (json.dumps(dict(good, rows={'hiql': {'base': dict(good['rows']['hiql']['base'],
+                                                                         seed_means=[0.2, -0.1])}})),
+                       'seed_means not success rates'),
+                      (json.dumps(dict(good, rows={'hiql': {'base': dict(good['rows']['hiql']['base'],
+                                                                         episodes_ci95=[0.6, 0.2])}})),
+                       'episodes_ci95 not success rates'),
                       (json.dumps(good)[:200], 'is not valid JSON')):
         with open(os.path.join(bad, 'results.json'), 'w') as f:
             f.write(text)

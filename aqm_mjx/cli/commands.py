@@ -38,6 +38,24 @@ def cmd_envs(a):
     return 0
 
 
+PICTURE_TYPES = ('.png', '.pdf', '.svg', '.jpg', '.jpeg')
+
+
+def picture_path(out: str, name: str) -> str:
+    """Where a picture asked for as ``out`` is written: ``out/name`` for a folder (an existing one, or
+    a path ending in a separator), ``out + '.png'`` without a suffix, ``out`` itself with a picture
+    suffix; any other suffix is refused, naming the types."""
+    if os.path.isdir(out) or out.endswith(os.sep):
+        return os.path.join(out, name)
+    suffix = os.path.splitext(out)[1].lower()
+    if not suffix:
+        return out + '.png'
+    if suffix not in PICTURE_TYPES:
+        raise ValueError(f'--out {out}: a picture is written as {", ".join(PICTURE_TYPES)} (or into a folder); '
+                         f'not {suffix}')
+    return out
+
+
 def cmd_render(a):
     import numpy as np  # pylint: disable=import-outside-toplevel
 
@@ -48,6 +66,7 @@ def cmd_render(a):
     bad = [d for d in a.deltas or () if not (d > 0 and d < float('inf'))]
     if bad:
         raise ValueError(f'--deltas must be finite numbers > 0; got {bad}')
+    a.out = picture_path(a.out, f'{a.env}.png')
     if a.checkpoint:
         from aqm_mjx import assess  # pylint: disable=import-outside-toplevel
 

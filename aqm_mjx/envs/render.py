@@ -5,6 +5,8 @@ Every later plot (datasets, keypoint maps, plans, pruned edges) draws on :func:`
 
 from __future__ import annotations
 
+import os
+
 from typing import Optional, Sequence
 
 import numpy as np
@@ -172,6 +174,7 @@ def finish(plt, fig, path):
     axes are never clipped."""
     fig.tight_layout()
     if path is not None:
+        os.makedirs(os.path.dirname(path) or '.', exist_ok=True)
         fig.savefig(path, bbox_inches='tight', pad_inches=0.1)
         plt.close(fig)
     return fig

@@ -59,7 +59,9 @@ class ProtocolConfig:
                                         "'stall=P' (the stall rule at patience P)")
     backend: str = option('mjx', "physics of the episodes: 'mjx' (our MJX copy: one jitted program, any device) or "
                           "'ogbench' (OGBench's own MuJoCo environments stepped on the host, the agent one jitted "
-                          "call per control step)", choices=BACKENDS)
+                          "call per control step). The cpu presets' run and evaluate take 'ogbench' on a host "
+                          "without an accelerator unless a backend or an MJX physics preset is named",
+                          choices=BACKENDS)
     physics_preset: str = option('ogbench', "backend 'mjx': the physics of our MJX copy, a named setting of the "
                                  "fidelity study (RESULTS 7.6): 'ogbench' (OGBench's: RK4, Newton 100/50), 'fast' "
                                  "(Newton 2/4, about 3x faster; not validated on every layout) or another of its rows", choices=physics_presets.NAMES)
