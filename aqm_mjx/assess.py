@@ -344,6 +344,18 @@ def check_evaluation_memory(env, cfg: RunConfig, n_layouts: int) -> None:
                      f'a chunk of {p.envs:,} environments', '--envs')
 
 
+def default_out(checkpoints) -> str:
+    """Where an evaluation of ``checkpoints`` writes when no folder is named: ``CHECKPOINT/eval`` for
+    one, the first one's parent's ``comparison/`` for several; ``runs/eval/NAME`` (or
+    ``runs/eval/comparison``) where that lies in a shipped or exported checkpoint, which is only read."""
+    first = os.path.normpath(checkpoints[0])
+    one = len(checkpoints) == 1
+    out = os.path.join(first, 'eval') if one else os.path.join(os.path.dirname(first), 'comparison')
+    if files.shipped_above(out) is not None:
+        out = os.path.join('runs', 'eval', os.path.basename(first) if one else 'comparison')
+    return out
+
+
 def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, dataset: Optional[str] = None,
                         shift: str = 'base', out: Optional[str] = None, seed: int = 0, overrides=(), log=print):
     """``aqm-mjx evaluate``: load a run folder, map, evaluate, write ``results.json`` and pictures.
@@ -354,7 +366,7 @@ def evaluate_checkpoint(checkpoint: str, cfg: Optional[RunConfig] = None, datase
     Layouts, tasks and the dataset are checked before anything is loaded or built.
     """
     env, variants, cfg, path = prepare_evaluation(checkpoint, cfg, dataset, shift, overrides)
-    out = out or os.path.join(checkpoint, 'eval')
+    out = out or default_out([checkpoint])
     files.check_writable(out, EVAL_OUTPUT_BYTES, 'the evaluation\'s results and pictures')  # before the episodes
     trained = fit.load(checkpoint, log=log)
     data = read_data(path, env)

@@ -125,6 +125,54 @@ def check_writable(folder: str, need_bytes: int = 0, what: str = 'the output') -
                           f'{free / 2 ** 20:.1f} MiB are free there')
 
 
+# what a folder is, by the file that marks it (the first found names it)
+KINDS = {'compare.json': 'a comparison (aqm-mjx compare)', 'run.json': 'a run folder (aqm-mjx run)',
+         'map_states.npz': 'a shipped or exported checkpoint (aqm-mjx export)',
+         'config.json': 'a training run folder (aqm-mjx train)', 'results.json': "an evaluation's results"}
+SHIPPED = 'map_states.npz'
+
+
+def kind_of(folder: str) -> Optional[str]:
+    """The marker file of :data:`KINDS` that ``folder`` holds (None: none, or no folder)."""
+    if not os.path.isdir(folder):
+        return None
+    return next((k for k in KINDS if os.path.exists(os.path.join(folder, k))), None)
+
+
+def shipped_above(path: str) -> Optional[str]:
+    """The shipped or exported checkpoint that ``path`` is or lies inside, if any."""
+    p = os.path.realpath(path)
+    while True:
+        if os.path.exists(os.path.join(p, SHIPPED)):
+            return p
+        up = os.path.dirname(p)
+        if up == p:
+            return None
+        p = up
+
+
+def check_output(out: str, kind: str, inputs=(), inside_ok=()) -> None:
+    """One rule for every command's output folder, before any work: ``out`` is not an input, does not
+    hold one and does not lie inside one (except under a folder of ``inside_ok``, e.g. a checkpoint's
+    ``eval/``); it is not in a shipped or exported checkpoint; and an existing ``out`` is empty or of
+    the command's own ``kind`` (a key of :data:`KINDS`: what the command writes there), never a
+    comparison, run or evaluation of another command whose files would be replaced or mixed.
+    Raises :class:`OutputError` naming the folder and what it is."""
+    for i in inputs:
+        if inside(i, out):
+            raise OutputError(f'--out {out} is or holds the input {i}: write the output to a folder outside it')
+        if inside(out, i) and not any(inside(out, ok) for ok in inside_ok):
+            raise OutputError(f'--out {out} lies inside the input {i}: write the output to a folder outside it')
+    ship = shipped_above(out)
+    if ship is not None:
+        raise OutputError(f'--out {out} lies inside the shipped checkpoint {ship}, which is only read: write the '
+                          'output to a folder outside it (e.g. under runs/)')
+    found = kind_of(out)
+    if found is not None and found != kind:
+        raise OutputError(f'--out {out} is {KINDS[found]}; its files would be replaced or mixed with '
+                          f'{KINDS[kind].split(" (")[0]}: choose another folder')
+
+
 class BadFileError(ValueError):
     """A file the command reads is damaged or is not what it should be; the message names it."""
 

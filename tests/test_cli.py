@@ -362,3 +362,52 @@ def test_the_parser_imports_no_jax_answers_at_once_and_errors_in_one_line():
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and says in lines[0], r.stderr
         assert lines[0].startswith(f'aqm-mjx {argv[0]}: error:') and f'see aqm-mjx {argv[0]} --help' in lines[0]
+
+
+def test_one_output_rule_for_every_command(tmp_path, monkeypatch, capsys):
+    """--out is never an input, inside one (but beside a checkpoint's checkpoints/), inside a shipped
+    checkpoint, or a folder of another command: refused in one line before any work, nothing written.
+    A shipped checkpoint's evaluation goes to runs/eval/NAME by default, not into the checkout."""
+    from aqm_mjx import assess  # pylint: disable=import-outside-toplevel
+
+    ship = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'checkpoints',
+                        'aqm-antmaze-medium-navigate-cpu-long')
+    seen = []
+    monkeypatch.setattr(assess, 'evaluate_checkpoint', lambda c, cfg, out=None, **k: seen.append(out))
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(['evaluate', '--checkpoint', ship]) == 0
+    assert seen == [os.path.join('runs', 'eval', 'aqm-antmaze-medium-navigate-cpu-long')]
+    assert 'a shipped checkpoint, only read' in capsys.readouterr().out
+    assert assess.default_out([ship]) == seen[0]
+    cmp_, train, run_, ev = (tmp_path / n for n in ('cmp', 'train', 'run', 'ev'))
+    for folder, marker in ((cmp_, 'compare.json'), (train, 'config.json'), (run_, 'run.json'), (ev, 'results.json')):
+        folder.mkdir()
+        (folder / marker).write_text('{"mine": 1}')
+    (cmp_ / 'results.json').write_text('{"the": "table"}')
+    (train / 'config.json').write_text(open(os.path.join(ship, 'config.json')).read())  # a readable training config
+    (train / 'checkpoints').mkdir()
+    before = {p: p.read_text() for p in tmp_path.rglob('*.json')}
+    cases = [(['evaluate', '--checkpoint', ship, '--out', str(cmp_)], 'is a comparison'),  # the issue's case
+             (['evaluate', '--checkpoint', ship, '--out', str(train)], 'is a training run folder'),
+             (['evaluate', '--checkpoint', ship, '--out', str(run_)], 'is a run folder'),
+             (['evaluate', '--checkpoint', ship, '--out', os.path.join(ship, 'eval')], 'inside the shipped checkpoint'),
+             (['evaluate', '--checkpoint', str(train), '--out', str(train / 'checkpoints' / 'x')],
+              'lies inside the input'),
+             (['evaluate', '--checkpoint', str(train), '--out', str(tmp_path)], 'holds the input'),
+             (['compare', '--out', str(train)], 'is a training run folder'),
+             (['compare', '--out', str(ev)], "is an evaluation's results"),
+             (['run', '--out', str(cmp_)], 'is a comparison'),
+             (['train', '--dataset', 'x.npz', '--out', str(cmp_)], 'is a comparison'),
+             (['export', '--checkpoint', str(train), '--out', str(train / 'exp')], 'lies inside the input'),
+             (['export', '--checkpoint', str(train), '--out', os.path.join(ship, 'x')], 'inside the shipped checkpoint')]
+    for argv, says in cases:
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0], (argv, err)
+    assert {p: p.read_text() for p in tmp_path.rglob('*.json')} == before
+    assert not (train / 'exp').exists() and not (train / 'checkpoints' / 'x').exists()
+    # beside a checkpoint's checkpoints/ (its eval/) and an evaluation folder again: allowed
+    seen.clear()
+    assert cli.main(['evaluate', '--checkpoint', str(train), '--out', str(train / 'eval2')]) == 0
+    assert cli.main(['evaluate', '--checkpoint', str(train), '--out', str(ev)]) == 0
+    assert seen == [str(train / 'eval2'), str(ev)]

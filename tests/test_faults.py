@@ -254,12 +254,16 @@ def test_a_second_writer_is_refused_and_a_killed_holder_frees_the_folder(tmp_pat
         deadline = time.time() + 300
         while not fit.checkpoint_steps(out) and time.time() < deadline:  # running, and past its first save
             time.sleep(0.2)
-        for argv in (train, ['train', '--dataset', grid_file, '--resume', '--out', out],
-                     ['run', '--env', 'pointmaze-medium', '--preset', 'ci', '--dataset', grid_file, '--out', out]):
+        for argv in (train, ['train', '--dataset', grid_file, '--resume', '--out', out]):
             assert cli.main(argv) == 2, argv
             lines = _error_lines(capsys.readouterr().err)
             assert len(lines) == 1 and f'pid {first.pid} on {socket.gethostname()}' in lines[0], lines
             assert 'in use by another aqm-mjx process' in lines[0] and 'aqm-mjx train' in lines[0]
+        # a run onto a training folder is refused for what the folder is, before any lock
+        assert cli.main(['run', '--env', 'pointmaze-medium', '--preset', 'ci', '--dataset', grid_file,
+                         '--out', out]) == 2
+        lines = _error_lines(capsys.readouterr().err)
+        assert len(lines) == 1 and 'is a training run folder' in lines[0], lines
         metrics_before = open(os.path.join(out, 'metrics.jsonl')).read()
     finally:
         first.kill()  # SIGKILL: the kernel drops its lock

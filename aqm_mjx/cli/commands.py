@@ -148,6 +148,9 @@ def cmd_train(a):
     from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
     from aqm_mjx.learn import fit, folder, methods  # pylint: disable=import-outside-toplevel
 
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+
+    files.check_output(a.out, 'config.json')
     method = methods.get(a.method or 'aqm')
     try:
         inferred, style = dataset.infer_env(a.dataset)
@@ -254,6 +257,7 @@ def cmd_run(a):
     if host:
         cfg = cfg.with_overrides(host)
     out = a.out or os.path.join('runs', a.env)
+    files.check_output(out, 'run.json')
     where = {'mjx': ' in MJX', 'ogbench': " in OGBench's environments"}[cfg.protocol.backend]
     if host:
         where += ' on the host (no accelerator; --backend mjx for MJX)'
@@ -312,14 +316,35 @@ def cmd_evaluate(a):
 
     named = [a.preset] if a.preset else [preset_for_name(fit.read_meta(c)[1].preset) for c in a.checkpoint]
     overrides += host_backend(named, overrides)
+    out = evaluation_out(a.checkpoint, a.out)
     if len(a.checkpoint) == 1:
-        assess.evaluate_checkpoint(a.checkpoint[0], cfg, dataset=a.dataset, shift=a.shift, out=a.out, seed=a.seed,
-                                overrides=overrides)
+        assess.evaluate_checkpoint(a.checkpoint[0], cfg, dataset=a.dataset, shift=a.shift, out=out, seed=a.seed,
+                                   overrides=overrides)
     else:
-        out = a.out or os.path.join(os.path.dirname(os.path.normpath(a.checkpoint[0])), 'comparison')
         assess.evaluate_checkpoints(a.checkpoint, out, cfg, dataset=a.dataset, shift=a.shift, seed=a.seed,
-                                 overrides=overrides)
+                                    overrides=overrides)
     return 0
+
+
+def evaluation_out(checkpoints, out=None) -> str:
+    """``evaluate``'s output folder, checked by :func:`aqm_mjx.files.check_output`: ``out``, else
+    ``CHECKPOINT/eval`` (several checkpoints: the first one's parent's ``comparison/``); for a shipped
+    or exported checkpoint, which is only read, ``runs/eval/NAME`` instead. An output inside a
+    checkpoint is allowed beside its ``checkpoints/`` (its ``eval/``), never in them."""
+    from aqm_mjx import assess, files  # pylint: disable=import-outside-toplevel
+
+    if out is None:
+        out = assess.default_out(checkpoints)
+        if files.shipped_above(checkpoints[0]) is not None:
+            print(f'{checkpoints[0]} is a shipped checkpoint, only read: the evaluation goes to {out}')
+    beside = []  # the checkpoint's own sub-folder that the output lies in, unless it is its checkpoints/
+    for c in checkpoints:
+        if files.inside(out, c) and not files.inside(out, os.path.join(c, 'checkpoints')):
+            rel = os.path.relpath(os.path.realpath(out), os.path.realpath(c))
+            if rel != '.':
+                beside.append(os.path.join(c, rel.split(os.sep)[0]))
+    files.check_output(out, 'results.json', inputs=list(checkpoints), inside_ok=beside)
+    return out
 
 
 def cmd_compare(a):
@@ -327,7 +352,10 @@ def cmd_compare(a):
     enable_compile_cache()
     from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
 
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+
     out = a.out or os.path.join('runs', f'compare-{a.env}-{a.style}')
+    files.check_output(out, 'compare.json')
     compare.compare(a.env, a.methods, a.seeds, out, preset=a.preset, dataset=a.dataset, style=a.style,
                     collect_episodes=collect_episodes_of(a), collect_batch=a.collect_batch,
                     collect_physics=collect_physics_of(a),
@@ -352,5 +380,8 @@ def cmd_export(a):
     enable_compile_cache()
     from aqm_mjx import assess  # pylint: disable=import-outside-toplevel
 
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+
+    files.check_output(a.out, 'map_states.npz', inputs=[a.checkpoint])
     assess.export_checkpoint(a.checkpoint, a.out, dataset=a.dataset, seed=a.seed)
     return 0

@@ -171,7 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument('--seed', type=int, default=0,
                    help='PRNGKey(seed) split as in `aqm-mjx run`: the same seed gives the same map and episodes')
     v.add_argument('--out', default=None, help='output folder (default CHECKPOINT/eval; with several checkpoints '
-                                               "the first one's parent/comparison)")
+                                               "the first one's parent/comparison; for a shipped or exported "
+                                               'checkpoint, which is only read, runs/eval/NAME). Never a '
+                                               'comparison, run or training folder, nor inside a checkpoint but '
+                                               'beside its checkpoints/')
     v.add_argument('--distributed', action='store_true',
                    help='multi-host: call jax.distributed.initialize() first (run the same command on every host)')
     section_options(v, known['sections'])
