@@ -30,7 +30,7 @@ from typing import Optional, Sequence
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx import envs, files, presets
+from aqm_mjx import envs, files, memory, presets
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.evaluation import plots, report, stats
 from aqm_mjx.evaluation.protocol import plan_episodes
@@ -460,6 +460,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
     variants = assess.variants_for(env.maze, shift)
     for c in cfgs.values():
         plan_episodes(env, c.protocol, c.agent.kappa, variants)  # bad task ids fail before any work
+        memory.check_training(methods.get(c.method), c.train, env.obs_size, env.action_size, seeds)
     seed_ids = [first_seed + i for i in range(seeds)]
     spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
     with files.run_lock(out):  # one writer per run folder

@@ -89,9 +89,46 @@ def fitting_envs(env, where: Optional[tuple[int, str]] = None, cap: int = MAX_AU
     return int(min(cap, 1 << (n.bit_length() - 1)))
 
 
-def training_bytes(cfg, obs_size: int, action_size: int) -> int:
-    """Activations of one update: per sample, every MLP width in the config (fields named
-    ``*hidden*``) and the inputs, forward and backward, for a few networks."""
+def training_bytes(cfg, obs_size: int, action_size: int, method=None) -> int:
+    """One update: activations per sample, every MLP width in the config (fields named ``*hidden*``)
+    and the inputs, forward and backward, for a few networks; with ``method`` (its registry entry)
+    also the training state (parameters and optimiser moments, from :func:`jax.eval_shape` of its
+    ``init``: traced, nothing allocated), twice (the new state beside the old), and every layer's
+    output width, so that a size field (``n_components``, ``latent``, ...) is counted too."""
     widths = sum(sum(v) for f in dataclasses.fields(cfg) if 'hidden' in f.name
                  for v in [getattr(cfg, f.name)] if isinstance(v, tuple))
-    return int(FACTOR * 4 * 2 * cfg.batch_size * (widths + 3 * obs_size + action_size) * 4)
+    state = 0
+    if method is not None:
+        state, outputs = learner_state(method, cfg, obs_size, action_size)
+        widths += outputs
+    return int(FACTOR * (2 * state + 4 * 2 * cfg.batch_size * (widths + 3 * obs_size + action_size) * 4))
+
+
+def learner_state(method, cfg, obs_size: int, action_size: int) -> tuple[int, int]:
+    """``(bytes, output widths)`` of a method's training state: the bytes of every array of its
+    ``init`` and the summed last dimension of its 2-d arrays (a dense layer's outputs), traced with
+    :func:`jax.eval_shape`."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    learner = method.make(cfg, obs_size, action_size)
+    leaves = jax.tree.leaves(jax.eval_shape(learner.init, jax.random.PRNGKey(0)))
+    return (int(sum(x.size * x.dtype.itemsize for x in leaves)),
+            int(sum(x.shape[-1] for x in leaves if len(x.shape) == 2)))
+
+
+def size_fields(cfg) -> list[str]:
+    """The fields of a training config that size its networks (widths and integer sizes), as
+    ``--set`` names: what to lower when an update does not fit."""
+    loop = {'steps', 'batch_size', 'updates_per_call', 'log_every', 'checkpoint_every', 'keep', 'seed'}
+    return [f.name for f in dataclasses.fields(cfg) if f.name not in loop
+            and (('hidden' in f.name and isinstance(getattr(cfg, f.name), tuple))
+                 or f.name in ('n_components', 'component_size', 'latent', 'rep_dim'))]
+
+
+def check_training(method, cfg, obs_size: int, action_size: int, seeds: int = 1) -> None:
+    """Refuse a training run whose update (``seeds`` of them vmapped) cannot fit, naming the batch and
+    the config's size fields, before the data are read or anything is compiled."""
+    need = seeds * training_bytes(cfg, obs_size, action_size, method)
+    what = f'an update of batch {cfg.batch_size:,} with its networks' + (f' for {seeds} seeds' if seeds > 1 else '')
+    check(need, what, '--set batch_size or a network size (--set ' + ', '.join(size_fields(cfg)) + ')'
+          + (' or --seeds' if seeds > 1 else ''))

@@ -15,13 +15,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs, files
+from aqm_mjx import envs, files, memory
 from aqm_mjx.assess import learning_curve, map_and_evaluate, read_data, variants_for
 from aqm_mjx.data import collect
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation.protocol import plan_episodes
-from aqm_mjx.learn import fit
+from aqm_mjx.learn import fit, methods
 from aqm_mjx.evaluation.evaluate import put_global
 from aqm_mjx.pipeline import RunConfig, make_run, stage_keys, summary
 
@@ -68,6 +68,7 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
     env = envs.make(env_name)
     variants = variants_for(env.maze, shift)  # a bad --shift or task id fails here, not after training
     plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)
+    memory.check_training(methods.get(cfg.method), cfg.train, env.obs_size, env.action_size)
     with files.run_lock(out):  # one writer per run folder
         # a folder trained with other settings is refused here, before run.json or data change
         fit.check_resumable(os.path.join(out, 'train'), cfg.method, cfg.train, env.obs_size, env.action_size)

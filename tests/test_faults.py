@@ -627,7 +627,18 @@ def test_batches_that_cannot_fit_are_refused_before_compiling(tmp_path, grid_fil
              (['evaluate', '--checkpoint', run_dir, '--dataset', grid_file, '--envs', '1000000000',
                '--out', str(tmp_path / 'ev')], 'lower --envs'),
              (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--set',
-               'batch_size=100000000', '--out', str(tmp_path / 'tr')], 'lower --set batch_size')]
+               'batch_size=100000000', '--out', str(tmp_path / 'tr')], 'lower --set batch_size'),
+             # a size field alone (the case: 50M IQE components grew past 15 GB before any refusal)
+             (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--set',
+               'n_components=50000000', '--out', str(tmp_path / 'tr')], 'n_components'),
+             (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--method', 'crl',
+               '--set', 'latent=50000000', '--out', str(tmp_path / 'tr')], 'latent'),
+             (['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci', '--set',
+               'q_hidden=100000,100000', '--out', str(tmp_path / 'tr')], 'q_hidden'),
+             (['run', '--env', 'pointmaze-medium', '--preset', 'ci', '--dataset', grid_file, '--set',
+               'n_components=50000000', '--out', str(tmp_path / 'rn')], 'n_components'),
+             (['compare', '--env', 'pointmaze-medium', '--preset', 'ci', '--dataset', grid_file, '--methods', 'gcbc',
+               '--seeds', '2', '--set', 'gcbc:actor_hidden=20000,20000', '--out', str(tmp_path / 'cm')], 'or --seeds')]
     for argv, option in cases:
         assert cli.main(argv) == 2, argv
         lines = _error_lines(capsys.readouterr().err)
@@ -635,7 +646,14 @@ def test_batches_that_cannot_fit_are_refused_before_compiling(tmp_path, grid_fil
     assert sorted(os.listdir(tmp_path)) == ['grid.npz', 'run']  # nothing written
     # what the suite runs fits in that 1 GiB
     collect.check_memory(collect.CollectConfig(env='antmaze-medium', episodes=100, batch=55))
-    memory.check(memory.training_bytes(methods.get('aqm').preset('cpu', env='antmaze-medium'), 29, 8), 'cpu', 'x')
+    for name in methods.names():  # every method's cpu networks, state included
+        m = methods.get(name)
+        memory.check(memory.training_bytes(m.preset('cpu', env='antmaze-medium'), 29, 8, m), name, 'x')
+    # by hand: the ci AQM (29 -> 32 -> 32 -> 32 IQE, a 61 -> 32 -> 32 -> 8 policy twice, Adam's two moments)
+    aqm = methods.get('aqm')
+    state, outputs = memory.learner_state(aqm, aqm.preset('ci', env='antmaze-medium'), 29, 8)
+    iqe = (29 * 32 + 32) + (32 * 32 + 32) + (32 * 32 + 32) + 1  # two hidden layers, the 32 components, alpha
+    assert state > 3 * 4 * iqe and outputs >= 3 * (32 + 32 + 32)
     assert 0 < memory.env_state_bytes(envs.make('antmaze-medium')) < 2 ** 20
 
 

@@ -173,8 +173,7 @@ def cmd_train(a):
                              'name), which sets the observation size; give --env instead')
         if a.steps is not None:
             cfg = dataclasses.replace(cfg, steps=int(a.steps))
-        memory.check(memory.training_bytes(cfg, obs_size, action_size), f'an update of batch {cfg.batch_size:,}',
-                     '--set batch_size')
+        memory.check_training(method, cfg, obs_size, action_size)
     elif a.method or a.preset or a.seed is not None or sets or a.env:
         # every option given with --resume is checked against the saved run (the same values pass)
         if not os.path.exists(os.path.join(a.out, 'config.json')):
