@@ -177,6 +177,16 @@ class BadFileError(ValueError):
     """A file the command reads is damaged or is not what it should be; the message names it."""
 
 
+def read_lines(path: str, what: str = 'JSON lines') -> list[str]:
+    """The lines of a text file (UTF-8); one that is not text is a :class:`BadFileError` naming it."""
+    try:
+        with open(path, encoding='utf-8') as f:
+            return f.readlines()
+    except UnicodeDecodeError as e:
+        raise BadFileError(f'{path} is not text ({what} expected; byte {e.start} cannot be read as UTF-8): '
+                           'was it damaged or replaced? Move it away to go on without it') from None
+
+
 def read_json(path: str, what: str = 'a run folder written by aqm-mjx train') -> dict:
     """The JSON object in ``path``, opened read-only.
 

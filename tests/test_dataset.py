@@ -1,6 +1,8 @@
 """OGBench file I/O (against ogbench.utils.load_dataset) and the goal sampler's statistics."""
 
+import io
 import os
+import zipfile
 
 import jax
 import numpy as np
@@ -62,6 +64,7 @@ def test_malformed_files_have_clear_messages(tmp_path):
         'noend': (dict(raw, terminals=np.zeros(240, bool)), 'no trajectory end is marked'),
         'cut': (dict(raw, terminals=np.r_[raw['terminals'][:-1], False]), 'last state is not marked terminal'),
         'object': (dict(raw, observations=np.array([None] * 240, dtype=object)), 'object array'),
+        'scalar': (dict(raw, terminals=np.array(True)), 'terminals is a single value \\(a 0-d array\\)'),
     }
     for name, (arrays, msg) in cases.items():
         with pytest.raises(dsm.DatasetError, match=msg):
@@ -76,6 +79,19 @@ def test_malformed_files_have_clear_messages(tmp_path):
     junk.write_bytes(b'not a zip')
     with pytest.raises(dsm.DatasetError, match='not an .npz archive'):
         dsm.read_ogbench(str(junk))
+    # a header declaring 2^40 x 29 floats (118,784 GiB): named, not numpy's allocation traceback
+    huge = _bad(tmp_path, 'huge', **raw)
+    with zipfile.ZipFile(huge) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {'descr': '<f4', 'fortran_order': False, 'shape': (2 ** 40, 29)})
+    members['observations.npy'] = head.getvalue() + b'\0' * 64
+    with zipfile.ZipFile(huge, 'w') as z:
+        for n, b in members.items():
+            z.writestr(n, b)
+    with pytest.raises(dsm.DatasetError, match=r'observations declares shape \(1099511627776, 29\) of float32 '
+                                               r'\(118,784 GiB\), more than'):
+        dsm.read_ogbench(huge)
 
 
 def test_failed_write_keeps_the_old_file(tmp_path):

@@ -765,3 +765,23 @@ def test_training_bar_draws_once_per_chunk(tmp_path, grid_data, monkeypatch):
     # open, the 'compiling' note before the first chunk, each chunk, close
     assert 100 % u == 0 and draws == [0, 0] + list(range(u, 101, u)) + [100]
     assert list(bars[0].postfix_seen) == ['actor']  # gcbc's loss, under its label
+
+
+def test_a_metrics_file_that_is_not_text_is_named(tmp_path):
+    """A metrics.jsonl replaced by binary bytes: reading it for curves or trimming it on resume is one
+    error naming the file (not a codec traceback), and the file is left as it was."""
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.evaluation import plots  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import folder  # pylint: disable=import-outside-toplevel
+
+    path = str(tmp_path / 'metrics.jsonl')
+    junk = b'{"step": 50}\n\x89PNG\r\n\x1a\n\xff\xfe'
+    with open(path, 'wb') as f:
+        f.write(junk)
+    for read in (lambda: plots.read_metrics(path), lambda: folder.trim_metrics(path, 100)):
+        with pytest.raises(files.BadFileError, match=f'{re.escape(path)} is not text .* byte 13 cannot be read'):
+            read()
+    assert open(path, 'rb').read() == junk
+    with open(path, 'w') as f:
+        f.write('{"step": 50}\n{"step": 150}\n{"st')  # text, a torn last line: read as before
+    assert plots.read_metrics(path) == [{'step': 50}, {'step': 150}]

@@ -47,6 +47,9 @@ def validate(data: dict, obs_size: Optional[int] = None, action_size: Optional[i
     for k in REQUIRED:
         if k not in data:
             raise DatasetError(f'{name}: missing key {k!r} (found {sorted(data)})')
+    for k in REQUIRED + OPTIONAL:
+        if k in data and np.ndim(data[k]) == 0:
+            raise DatasetError(f'{name}: {k} is a single value (a 0-d array); expected one row per state')
     obs, act, term = data['observations'], data['actions'], data['terminals']
     n = len(term)
     if n == 0:
@@ -74,6 +77,18 @@ def validate(data: dict, obs_size: Optional[int] = None, action_size: Optional[i
         raise DatasetError(f'{name}: no trajectory end is marked (terminals is all False)')
     if not bool(term[-1]):
         raise DatasetError(f'{name}: the last state is not marked terminal; the final trajectory is cut')
+
+
+def _declared(f, key: str) -> str:
+    """What the ``.npy`` header of ``key`` in the open archive ``f`` declares (shape and type)."""
+    try:
+        with f.zip.open(key + '.npy') as member:
+            version = np.lib.format.read_magic(member)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read(member)
+        return f'shape {shape} of {dtype} ({np.prod(shape, dtype=float) * dtype.itemsize / 2 ** 30:,.0f} GiB)'
+    except Exception:  # pylint: disable=broad-except
+        return 'an array'
 
 
 def read_ogbench(path: str, obs_size: Optional[int] = None, action_size: Optional[int] = None,
@@ -124,6 +139,9 @@ def read_ogbench(path: str, obs_size: Optional[int] = None, action_size: Optiona
                 raise DatasetError(f'{path}: {k} is damaged ({e})') from None
             except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as e:  # flipped or missing bytes
                 raise DatasetError(f'{path}: {k} is damaged ({type(e).__name__}: {e})') from None
+            except MemoryError:  # a header declaring more than the machine holds (damaged, or not a dataset)
+                raise DatasetError(f'{path}: {k} declares {_declared(f, k)}, more than this machine\'s memory '
+                                   'holds; is the file damaged?') from None
             _check_real(a, k, path, bool_ok=k == 'terminals')
             a = a.astype(bool if k == 'terminals' else np.float32, copy=False)
             out[k] = a

@@ -129,15 +129,16 @@ def read_metrics(path: str) -> list[dict]:
     import json  # pylint: disable=import-outside-toplevel
     import os  # pylint: disable=import-outside-toplevel
 
+    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+
     if not os.path.exists(path):
         return []
     out = []
-    with open(path) as f:
-        for line in f:
-            try:
-                out.append(json.loads(line))
-            except ValueError:
-                continue
+    for line in files.read_lines(path, "a run's metrics, one JSON object a line"):
+        try:
+            out.append(json.loads(line))
+        except ValueError:
+            continue
     return out
 
 

@@ -170,8 +170,7 @@ def trim_metrics(path: str, step: int) -> None:
         except ValueError:  # a line torn by a kill during its write
             return False
 
-    with open(path) as f:
-        lines = [ln for ln in f if ln.strip() and keep(ln)]
+    lines = [ln for ln in files.read_lines(path, "a run's metrics, one JSON object a line") if ln.strip() and keep(ln)]
     files.write_text(path, ''.join(lines))
 
 
