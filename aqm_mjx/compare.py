@@ -463,6 +463,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         memory.check_training(methods.get(c.method), c.train, env.obs_size, env.action_size, seeds)
     seed_ids = [first_seed + i for i in range(seeds)]
     spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
+    given = assess.read_data(dataset, env) if dataset else None  # a damaged file is named before anything is written
     with files.run_lock(out):  # one writer per run folder
         all_names, recorded = _check_spec(out, spec, names)
         cpath = os.path.join(out, 'compare.json')
@@ -471,7 +472,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
 
         path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
                               physics=collect_physics, physics_preset=collect_preset)
-        data = assess.read_data(path, env)
+        data = given if given is not None else assess.read_data(path, env)
         digest = ds_io.fingerprint(data)
         if recorded is not None and recorded != digest:
             raise ValueError(f'{path}: the data changed since this comparison began (sha256 {digest[:16]}... now, '

@@ -101,6 +101,12 @@ def test_requests_are_checked_before_any_work(tmp_path):
     assert cli.main(['compare', '--env', 'pointmaze-medium', '--methods', 'gcbc', '--set', 'protocol.tasks=9',
                      '--out', out]) == 2
     assert not os.path.exists(os.path.join(out, 'data'))
+    # a damaged dataset is named, and leaves no comparison folder (no compare.json, no lock)
+    damaged = tmp_path / 'pointmaze-medium-navigate.npz'
+    damaged.write_bytes(b'PK\x03\x04 half an archive')
+    assert cli.main(['compare', '--env', 'pointmaze-medium', '--methods', 'gcbc', '--dataset', str(damaged),
+                     '--out', out]) == 2
+    assert not os.path.exists(out)
 
 
 def _data(tmp_path):
