@@ -53,7 +53,7 @@ class RunConfig:
     @classmethod
     def preset(cls, name: str, method: str = 'aqm', env: Optional[str] = None, seed: int = 0,
                style: Optional[str] = None) -> 'RunConfig':
-        """Preset ``name`` (``ci``, ``cpu``, ``cpu-long``, ``cpu-giant``, ``paper``) for ``method`` on ``env``, trained on data of
+        """Preset ``name`` (``ci``, ``cpu``, ``cpu-quick``, ``cpu-long``, ``cpu-giant``, ``paper``) for ``method`` on ``env``, trained on data of
         ``style`` (the method's rules for it: AQM draws uniform random goals on ``explore`` data)."""
         over = dict(seed=seed) if env is None else dict(env=env, seed=seed)
         return cls(method=method, train=methods.get(method).preset(presets.check(name), style=style, **over),

@@ -56,8 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--method', default='aqm', choices=method_names, help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default=presets.DEFAULT, choices=presets.names(),
                    help='every default of the run: cpu (minutes on a 2-core CPU: 100 MJX episodes, 20,000 '
-                        'updates), cpu-long (the default: 400 episodes collected on the host, 50,000 updates: 3 + 11 '
-                        'min on antmaze-medium), '
+                        'updates), cpu-quick (the default: 400 episodes collected on the host, 25,000 updates: '
+                        'antmaze-medium in under 10 min), cpu-long (the same data, 50,000 updates: the shipped '
+                        'checkpoint, 26 min), '
                         'cpu-giant (antmaze-giant in under 2 h: 400 episodes of 2,001 '
                         'states, 150,000 updates, delta 12), paper (the paper\'s sizes; for a GPU), ci (the wiring in a few minutes '
                         'of compiling on a CPU, for tests; its success rates mean nothing)')
@@ -68,11 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--dataset', default=None, help='an OGBench-format .npz to train on instead of collecting')
     r.add_argument('--collect-episodes', type=int, default=None,
                    help="navigate episodes to collect (1001 states each, 2001 on giant; default: the preset's: 100, "
-                        "400 for cpu-long and cpu-giant, 4 for ci)")
+                        "400 for cpu-quick, cpu-long and cpu-giant, 4 for ci)")
     r.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
     r.add_argument('--collect-physics', default=None, choices=['mjx', 'mujoco'],
                    help="physics of the collection: 'mjx', or 'mujoco' (MuJoCo on the host, 6-8x faster on a CPU); "
-                        "default the preset's: mujoco for cpu-long, mjx otherwise (and for antmaze-teleport)")
+                        "default the preset's: mujoco for cpu-quick and cpu-long, mjx otherwise (and for "
+                        'antmaze-teleport)')
     r.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")
     r.add_argument('--seed', type=int, default=0, help='run seed: PRNGKey(seed) is split into train, map, evaluation')
     r.add_argument('--one-program', action='store_true',
@@ -138,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument('--method', default=None, choices=method_names,
                    help='registered method (aqm-mjx methods; default aqm)')
     t.add_argument('--preset', default=None, choices=presets.names(),
-                   help='cpu: minutes on a 2-core CPU; cpu-long: 50,000 updates; cpu-giant: 150,000; paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
+                   help='cpu: minutes on a 2-core CPU; cpu-quick: 25,000 updates; cpu-long: 50,000; cpu-giant: 150,000; '
+                        'paper: Appendix 10 sizes (3x512, batch 1024, 1e6 updates); '
                         f'ci: smoke tests (default {presets.DEFAULT})')
     t.add_argument('--set', action='append', metavar='FIELD=VALUE',
                    help='override a training config field, e.g. --set batch_size=512 --set q_hidden=512,512 (repeatable)')
@@ -200,10 +203,11 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument('--style', default='navigate', choices=['navigate', 'stitch', 'explore'],
                    help='the dataset to collect (taken from the file name with --dataset)')
     k.add_argument('--collect-episodes', type=int, default=None,
-                   help="episodes to collect (default: the preset's, 100, or 400 for cpu-long and cpu-giant)")
+                   help="episodes to collect (default: the preset's, 100, or 400 for cpu-quick, cpu-long and cpu-giant)")
     k.add_argument('--collect-batch', type=int, default=55, help='episodes collected side by side')
     k.add_argument('--collect-physics', default=None, choices=['mjx', 'mujoco'],
-                   help="physics of the collection (default the preset's: mujoco for cpu-long, mjx otherwise)")
+                   help="physics of the collection (default the preset's: mujoco for cpu-quick and cpu-long, mjx "
+                        'otherwise)')
     k.add_argument('--shift', default='base', help="evaluation layout: base, all, closures, a variant (close-I-J), or several joined by commas")
     k.add_argument('--backend', default=None, choices=['mjx', 'ogbench'],
                    help="physics of the evaluation: 'mjx' (default) or 'ogbench' (OGBench's own environments on "

@@ -96,8 +96,8 @@ class AQMConfig(LoopConfig):
 
     @classmethod
     def preset(cls, name: str, **overrides) -> 'AQMConfig':
-        """``paper``: Appendix 10 sizes; ``cpu``: a few minutes on a 2-core CPU; ``cpu-long``: ``cpu`` for 2.5x the
-        updates; ``cpu-giant``: ``cpu`` for 7.5x the updates; ``ci``: tests."""
+        """``paper``: Appendix 10 sizes; ``cpu``: a few minutes on a 2-core CPU; ``cpu-quick``: ``cpu`` for 1.25x the
+        updates; ``cpu-long``: for 2.5x; ``cpu-giant``: ``cpu`` for 7.5x the updates; ``ci``: tests."""
         return cls(**{**presets.loop(name), **SIZES[presets.networks(name)], 'preset': name, **overrides})
 
     @property

@@ -81,8 +81,8 @@ class BaselineConfig(LoopConfig):
     @classmethod
     def preset(cls, name: str, **overrides):
         """``paper``: OGBench's sizes (batch 1024, 3 x 512, 10^6 updates); ``cpu``: AQM's cpu scale
-        (batch 256, 3 x 256, 20,000 updates); ``cpu-long``: ``cpu`` for 50,000
-        updates; ``cpu-giant``: ``cpu`` for 150,000; ``ci``: tests."""
+        (batch 256, 3 x 256, 20,000 updates); ``cpu-quick``: ``cpu`` for 25,000
+        updates; ``cpu-long``: for 50,000; ``cpu-giant``: ``cpu`` for 150,000; ``ci``: tests."""
         size = presets.networks(name)
         return cls(**{**presets.loop(name), **SIZES[size], **cls.PRESET_OVERRIDES.get(size, {}), 'preset': name,
                       **overrides})
