@@ -21,7 +21,7 @@ from typing import Callable, Optional
 import jax
 import numpy as np
 
-from aqm_mjx import envs, files, presets
+from aqm_mjx import envs, files, presets, processes
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, report
@@ -135,6 +135,8 @@ def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, vari
     info = dict(info, method=trained.method, step=trained.step, train_preset=trained.config.preset,
                 keypoints=m['keypoints'], keypoint_overflow=m['overflow'], map_s=round(m['seconds'], 2),
                 config=cfg.to_dict(), **({} if cal is None else dict(calibration=cal)))
+    if not processes.writer():  # several processes: each holds every result; process 0 writes them
+        return res, info
     rep = report.write(res, graph, env.layout, variants, out, env.name, cfg.protocol.episodes, info,
                        name=os.path.basename(os.path.normpath(info.get('checkpoint', out))),
                        false_alarm=cfg.protocol.false_alarm)
@@ -422,6 +424,8 @@ def evaluate_checkpoints(checkpoints, out: str, cfg: Optional[RunConfig] = None,
     combined = dict(env=env.name, seed=seed, episodes=prepared[0][2].protocol.episodes,
                     split=prepared[0][2].protocol.split, checkpoints=per, tasks=res.tasks, variants=list(variants),
                     summary=table, config=prepared[0][2].to_dict(), provenance=files.provenance())
+    if not processes.writer():  # process 0 writes the table
+        return combined
     files.write_json(os.path.join(out, 'results.json'), combined, makedirs=True)
     plots.success_bars(table, first, res.tasks, os.path.join(out, 'success.png'),
                        title=f'{env.name} ({first}): every checkpoint on the same episodes',

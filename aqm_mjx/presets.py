@@ -15,7 +15,7 @@ which a row may change. A method's config adds only its own sizes to :func:`loop
 
 from __future__ import annotations
 
-DEFAULT = 'cpu-quick'  # the preset whose values are the configs' dataclass defaults (and every command's)
+DEFAULT = 'cpu-long'  # the preset whose values are the configs' dataclass defaults (and every command's)
 
 # The training loop, once for every method: updates, batch, updates per jitted call, metric lines and
 # checkpoints.
@@ -24,7 +24,7 @@ LOOP = {
     'paper': dict(steps=1_000_000, batch_size=1024, updates_per_call=1000, log_every=5000, checkpoint_every=50_000),
     # a few minutes on a 2-core CPU: 50x fewer updates, a quarter of the batch
     'cpu': dict(steps=20_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
-    # cpu for 1.25x the updates: the default run, antmaze-medium in about 5 min of training on a 2-core CPU
+    # cpu for 1.25x the updates: antmaze-medium in about 5 min of training on a 2-core CPU
     'cpu-quick': dict(steps=25_000, batch_size=256, updates_per_call=500, log_every=500, checkpoint_every=5_000),
     # cpu for 2.5x the updates (antmaze-medium in about 11 min of training on a 2-core CPU, antmaze-large in
     # 1-1.5 h for 2 seeds)
@@ -62,8 +62,9 @@ RUN = {
                collect_episodes=4),
     # 100 MJX episodes, 20,000 updates (the models of RESULTS.md section 1), the cpu rule
     'cpu': dict(_CPU_RULE),
-    # the default: cpu-long's data and rule at half its updates, so that `aqm-mjx run` ends in under 10 min on a
-    # 2-core CPU; it reroutes as cpu-long does on report episodes (RESULTS.md section 3.1)
+    # cpu-long's data and rule at half its updates: `aqm-mjx run --preset cpu-quick` in under 9 min on a 2-core
+    # CPU, but replanning does not pay on every model (+2.0 and +21.3 over no pruning on two; RESULTS.md
+    # section 3.1), so it is not the default
     'cpu-quick': dict(_CPU_RULE, collect_episodes=400, collect_physics='mujoco'),
     # 4x the data (collected on the host), 2.5x the updates, the same rule. At the cpu scale the controller
     # stalls on detours and replanning pays on two models in four; here on every model trained so far

@@ -120,14 +120,14 @@ def test_cpu_long_preset_scales_the_cpu_run_for_every_method():
     parser = cli.build_parser()
     assert cli.collect_episodes_of(parser.parse_args(['run', '--preset', 'cpu-long'])) == 400
     assert cli.collect_episodes_of(parser.parse_args(['compare', '--preset', 'cpu-long', '--collect-episodes', '7'])) == 7
-    # cpu-quick is the default preset: cpu-long's data, map, rule and protocol at half its updates; a bare run
-    # collects its 400 episodes on the host, --preset cpu its 100 in MJX
+    # cpu-quick: cpu-long's data, map, rule and protocol at half its updates; cpu-long is the default preset: a
+    # bare run collects its 400 episodes on the host, --preset cpu its 100 in MJX
     quick = pipeline.RunConfig.preset('cpu-quick', env='antmaze-large')
     assert (quick.train.steps, quick.train.batch_size, quick.train.q_hidden) == (25_000, 256, long.train.q_hidden)
     assert (quick.map, quick.agent, quick.protocol) == (long.map, long.agent, long.protocol)
     assert (pipeline.collect_episodes('cpu-quick'), pipeline.collect_physics('cpu-quick')) == (400, 'mujoco')
-    assert pipeline.RunConfig.preset(presets.DEFAULT) == pipeline.RunConfig.preset('cpu-quick')
-    assert presets.DEFAULT == 'cpu-quick' and cli.collect_episodes_of(parser.parse_args(['run'])) == 400
+    assert pipeline.RunConfig.preset(presets.DEFAULT) == pipeline.RunConfig.preset('cpu-long')
+    assert presets.DEFAULT == 'cpu-long' and cli.collect_episodes_of(parser.parse_args(['run'])) == 400
     assert cli.collect_physics_of(parser.parse_args(['run'])) == 'mujoco'
     assert cli.collect_episodes_of(parser.parse_args(['run', '--preset', 'cpu'])) == 100
     physics = {(cmd, preset, env, given): cli.collect_physics_of(parser.parse_args(

@@ -225,6 +225,19 @@ def run_config(a):
                                      style=style).with_overrides(overrides_of(a))
 
 
+def start_processes(a) -> int:
+    """Join the run's processes when the command names them (``--coordinator``, ``--num-processes``,
+    ``--process-id``, or ``--distributed``); returns the process count (1: this process alone)."""
+    from aqm_mjx import processes  # pylint: disable=import-outside-toplevel
+
+    named = (getattr(a, 'coordinator', None), getattr(a, 'num_processes', None), getattr(a, 'process_id', None))
+    if not getattr(a, 'distributed', False) and named == (None, None, None):
+        return 1
+    pid, n = processes.start(*named, detect=getattr(a, 'distributed', False) and named == (None, None, None))
+    print(f'process {pid} of {n}: {n} processes joined', file=sys.stderr)
+    return n
+
+
 def host_backend(preset_names, overrides) -> list:
     """``['protocol.backend=ogbench']`` where an evaluation of these presets runs in OGBench's own
     environments on this host, else ``[]``: the ``cpu`` rows (:func:`aqm_mjx.presets.host_evaluation`)
@@ -298,10 +311,7 @@ def collect_physics_of(a) -> str:
 
 def cmd_evaluate(a):
     """OGBench's protocol for a trained model, with ablations and test-time shifts in one batch."""
-    if a.distributed:
-        import jax  # pylint: disable=import-outside-toplevel
-
-        jax.distributed.initialize()  # before any other JAX call: every host runs this same command
+    n_processes = start_processes(a)  # before any other JAX call: every process runs this same command
     enable_compile_cache()
     from aqm_mjx import assess, pipeline  # pylint: disable=import-outside-toplevel
 
@@ -314,7 +324,11 @@ def cmd_evaluate(a):
     from aqm_mjx.learn import fit  # pylint: disable=import-outside-toplevel
 
     named = [a.preset] if a.preset else [preset_for_name(fit.read_meta(c)[1].preset) for c in a.checkpoint]
-    overrides += host_backend(named, overrides)
+    if n_processes == 1:
+        overrides += host_backend(named, overrides)
+    elif any(o.replace(' ', '').split('.')[-1] == 'backend=ogbench' for o in overrides):
+        raise ValueError("several processes evaluate in MJX, the episodes sharded over every process's devices; "
+                         "drop --backend ogbench (OGBench's environments step on one host)")
     out = evaluation_out(a.checkpoint, a.out)
     if len(a.checkpoint) == 1:
         assess.evaluate_checkpoint(a.checkpoint[0], cfg, dataset=a.dataset, shift=a.shift, out=out, seed=a.seed,

@@ -36,6 +36,17 @@ def section_options(p: argparse.ArgumentParser, sections: dict) -> None:
             g.add_argument('--' + f['name'].replace('_', '-'), **kw)
 
 
+def process_options(p: argparse.ArgumentParser) -> None:
+    """The options of several processes (JAX's multi-controller runtime, :mod:`aqm_mjx.processes`)."""
+    g = p.add_argument_group('several processes (every process runs the same command with its own --process-id)')
+    g.add_argument('--coordinator', default=None, metavar='HOST:PORT',
+                   help="process 0's address, the same on every process (e.g. 127.0.0.1:12355 on one machine)")
+    g.add_argument('--num-processes', type=int, default=None, metavar='N', help='processes taking part')
+    g.add_argument('--process-id', type=int, default=None, metavar='I', help="this process's id, 0 .. N-1")
+    g.add_argument('--distributed', action='store_true',
+                   help='several processes, their addresses read from the cluster (SLURM, Open MPI, ...) by JAX')
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``aqm-mjx`` command line: one subcommand per job, each with its ``fn``."""
     import aqm_mjx  # pylint: disable=import-outside-toplevel
@@ -56,9 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--method', default='aqm', choices=method_names, help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default=presets.DEFAULT, choices=presets.names(),
                    help='every default of the run: cpu (minutes on a 2-core CPU: 100 MJX episodes, 20,000 '
-                        'updates), cpu-quick (the default: 400 episodes collected on the host, 25,000 updates: '
-                        'antmaze-medium in under 10 min), cpu-long (the same data, 50,000 updates: the shipped '
-                        'checkpoint, 26 min), '
+                        'updates), cpu-quick (400 episodes collected on the host, 25,000 updates: antmaze-medium in '
+                        'under 9 min, replanning not reliable at this scale), cpu-long (the default: the same data, '
+                        '50,000 updates, the shipped checkpoint\'s), '
                         'cpu-giant (antmaze-giant in under 2 h: 400 episodes of 2,001 '
                         'states, 150,000 updates, delta 12), paper (the paper\'s sizes; for a GPU), ci (the wiring in a few minutes '
                         'of compiling on a CPU, for tests; its success rates mean nothing)')
@@ -178,8 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                'checkpoint, which is only read, runs/eval/NAME). Never a '
                                                'comparison, run or training folder, nor inside a checkpoint but '
                                                'beside its checkpoints/')
-    v.add_argument('--distributed', action='store_true',
-                   help='multi-host: call jax.distributed.initialize() first (run the same command on every host)')
+    process_options(v)
     section_options(v, known['sections'])
     v.set_defaults(fn=commands.cmd_evaluate)
     k = sub.add_parser(

@@ -51,6 +51,7 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
                   backend=jax.default_backend(), provenance=provenance(),
                   device=str(jax.devices()[0]), device_count=jax.device_count())
     write_json(os.path.join(out, 'results.json'), report)
+    write_episodes(res, os.path.join(out, 'episodes.npz'))
     first = res.variants[0]
     plots.success_bars(res.summary, first, res.tasks, os.path.join(out, 'success.png'),
                        title=f'{env_name} ({first}): success per task, {episodes} episodes each', episodes=episodes)
@@ -62,6 +63,25 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
                       os.path.join(out, 'heatmap.png'),
                       title=f'{env_name}: trained on base, evaluated on each layout (mean success)')
     return report
+
+
+def write_episodes(res: Results, path: str) -> None:
+    """``episodes.npz`` beside ``results.json``: one row per episode of the table, for recomputing any
+    rate or interval (``np.load(path)``, no pickle): ``agent``, ``layout`` (names), ``task``,
+    ``episode`` (its number within its layout and task), ``success``, ``pruned`` (overruns),
+    ``removed`` (edges cut), ``legs`` (legs completed). Written whole or not at all."""
+    t = res.table
+    arrays = dict(agent=np.asarray(res.agents)[np.asarray(t.agent)], layout=np.asarray(res.variants)[np.asarray(t.variant)],
+                  task=np.asarray(t.task, np.int32), episode=np.asarray(t.episode, np.int32),
+                  success=np.asarray(res.success, bool), pruned=np.asarray(res.pruned, np.int32),
+                  removed=np.asarray(res.removed, np.int32), legs=np.asarray(res.n_legs, np.int32))
+    tmp = path + '.tmp.npz'
+    try:
+        np.savez_compressed(tmp, **arrays)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
 def _pct(x: float) -> str:

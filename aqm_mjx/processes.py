@@ -1,0 +1,107 @@
+"""Several processes as one JAX program: JAX's multi-controller runtime, started before any other
+JAX call.
+
+    processes.start('10.0.0.1:1234', num_processes=2, process_id=0)   # on every process, its own id
+    processes.writer()                                                 # True on process 0 alone
+
+Every process runs the same command; ``jax.devices()`` is then every process's devices, the
+evaluation's environment axis is sharded over all of them (:func:`aqm_mjx.evaluation.evaluate.device_mesh`)
+and its results are gathered on every process (``process_allgather``); process 0 alone writes files.
+On CPUs the collectives go through gloo (two processes of one machine, as the tests run it); on GPU
+nodes through NCCL. With no argument, :func:`start` lets JAX detect the cluster (SLURM, Open MPI,
+...); the launcher (``srun``, ``mpirun`` or a shell loop) is the user's: there is no scheduler here.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+import time
+from typing import Optional
+
+TIMEOUT_S = 120  # how long a process waits for the coordinator and the others (AQM_MJX_PROCESS_TIMEOUT_S)
+
+
+def start(coordinator: Optional[str] = None, num_processes: Optional[int] = None, process_id: Optional[int] = None,
+          detect: bool = False, timeout_s: Optional[int] = None) -> tuple[int, int]:
+    """Join the processes of one run; returns ``(process id, process count)``.
+
+    Args:
+        coordinator: ``HOST:PORT`` of process 0's coordination service (every process names the same).
+        num_processes: how many processes take part.
+        process_id: this process's id, ``0 .. num_processes - 1``.
+        detect: none of the three given: let JAX read them from the cluster's environment (SLURM, ...).
+        timeout_s: a process that cannot reach the coordinator, or whose partners do not all arrive,
+            gives up after this long (default ``AQM_MJX_PROCESS_TIMEOUT_S`` or :data:`TIMEOUT_S`).
+    Raises:
+        ValueError: only some of the three given, or values out of range (before any JAX call).
+        RuntimeError: the coordinator or a partner was not reached; the message names which process
+            waited for what.
+    """
+    given = {'--coordinator': coordinator, '--num-processes': num_processes, '--process-id': process_id}
+    if not detect and all(v is None for v in given.values()):
+        return 0, 1
+    if not detect:
+        missing = [k for k, v in given.items() if v is None]
+        if missing:
+            raise ValueError(f'several processes need --coordinator, --num-processes and --process-id together; '
+                             f'missing {", ".join(missing)}')
+        if ':' not in str(coordinator) or not str(coordinator).rsplit(':', 1)[1].isdigit():
+            raise ValueError(f'--coordinator {coordinator!r}: expected HOST:PORT, e.g. 127.0.0.1:12355')
+        if int(num_processes) < 1 or not 0 <= int(process_id) < int(num_processes):
+            raise ValueError(f'--process-id {process_id} of --num-processes {num_processes}: expected '
+                             f'0 <= id < {num_processes}')
+    import jax  # pylint: disable=import-outside-toplevel
+
+    timeout_s = int(timeout_s or os.environ.get('AQM_MJX_PROCESS_TIMEOUT_S', TIMEOUT_S))
+    if jax.config.jax_platforms in (None, '', 'cpu') or str(jax.config.jax_platforms).startswith('cpu'):
+        jax.config.update('jax_cpu_collectives_implementation', 'gloo')  # CPU processes talk through gloo
+    where = 'the cluster\'s coordinator' if detect else f'the coordinator {coordinator}'
+    if not detect and int(process_id) != 0:  # XLA aborts the process when it cannot connect: look first
+        _wait_for(str(coordinator), timeout_s, f'process {process_id} of {num_processes}')
+    elif not detect:
+        print(f'process 0 of {num_processes}: coordinating at {coordinator}; waiting up to {timeout_s} s for the '
+              'others (XLA ends this process if they do not all come)', file=sys.stderr, flush=True)
+    try:
+        if detect:
+            jax.distributed.initialize(initialization_timeout=timeout_s)
+        else:
+            jax.distributed.initialize(coordinator_address=coordinator, num_processes=int(num_processes),
+                                       process_id=int(process_id), initialization_timeout=timeout_s)
+    except Exception as e:  # pylint: disable=broad-except  (XLA's errors carry long status text)
+        first = ' '.join(str(e).split())[:300]
+        who = 'this process' if detect else f'process {process_id} of {num_processes}'
+        raise RuntimeError(f'{who} could not join the run through {where} within {timeout_s} s ({first})') from None
+    return jax.process_index(), jax.process_count()
+
+
+def _wait_for(coordinator: str, timeout_s: float, who: str) -> None:
+    """Return once ``HOST:PORT`` accepts a connection; a :class:`RuntimeError` naming it after
+    ``timeout_s``."""
+    host, port = coordinator.rsplit(':', 1)
+    end = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection((host.strip('[]'), int(port)), timeout=2.0):
+                return
+        except OSError as e:
+            if time.monotonic() >= end:
+                raise RuntimeError(f'{who} could not join the run through the coordinator {coordinator} within '
+                                   f'{timeout_s:g} s ({e.strerror or e}): is process 0 running, and is the '
+                                   'address its?') from None
+            time.sleep(0.5)
+
+
+def count() -> int:
+    """Processes in the run (1 without :func:`start`)."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    return jax.process_count()
+
+
+def writer() -> bool:
+    """Whether this process writes the run's files (process 0)."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    return jax.process_index() == 0

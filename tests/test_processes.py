@@ -1,0 +1,99 @@
+"""Several processes as one JAX program (JAX's multi-controller runtime), run here as two CPU
+processes of this machine talking through gloo."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from aqm_mjx import processes
+
+ENV = dict(os.environ, JAX_PLATFORMS='cpu', XLA_FLAGS='')  # one CPU device a process
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def test_start_refuses_partial_or_bad_arguments_before_any_jax_call():
+    assert processes.start() == (0, 1)  # nothing named: this process alone
+    for kw, says in ((dict(coordinator='127.0.0.1:1'), 'missing --num-processes, --process-id'),
+                     (dict(num_processes=2, process_id=0), 'missing --coordinator'),
+                     (dict(coordinator='localhost', num_processes=2, process_id=0), 'expected HOST:PORT'),
+                     (dict(coordinator='127.0.0.1:1', num_processes=2, process_id=2), 'expected 0 <= id < 2')):
+        with pytest.raises(ValueError, match=says):
+            processes.start(**kw)
+
+
+_GATHER = '''
+import sys
+from aqm_mjx import processes
+pid, n = processes.start(sys.argv[1], 2, int(sys.argv[2]), timeout_s=int(sys.argv[3]))
+import jax, numpy as np
+from aqm_mjx.evaluation.evaluate import device_mesh, fetch_global, put_global
+from jax.sharding import NamedSharding, PartitionSpec
+mesh = device_mesh()
+x = put_global(np.arange(8.0), NamedSharding(mesh, PartitionSpec('env')))
+y = fetch_global(jax.jit(lambda a: 2 * a + a.sum())(x))
+print(pid, n, jax.device_count(), processes.writer(), y.tolist(), flush=True)
+'''
+
+
+def test_two_processes_shard_one_array_and_gather_it_on_both():
+    """The evaluation's own helpers over two processes: an array put on the global mesh (one device a
+    process), a jitted program over it, the result gathered on both; process 0 alone is the writer."""
+    port = str(free_port())
+    procs = [subprocess.Popen([sys.executable, '-c', _GATHER, f'127.0.0.1:{port}', str(i), '60'], env=ENV,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=180) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][1][-2000:] + outs[1][1][-2000:]
+    want = (2 * np.arange(8.0) + 28).tolist()
+    lines = sorted(o.strip().splitlines()[-1] for o, _ in outs)
+    assert lines == [f'0 2 2 True {want}', f'1 2 2 False {want}']
+
+
+def test_a_process_whose_partner_never_comes_names_what_it_waited_for():
+    """Process 0 alone of two: it ends within its timeout with one line naming the coordinator."""
+    port = str(free_port())
+    r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', 'evaluate', '--checkpoint', 'nowhere',
+                        '--coordinator', f'127.0.0.1:{port}', '--num-processes', '2', '--process-id', '1'],
+                       env=dict(ENV, AQM_MJX_PROCESS_TIMEOUT_S='5'), capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.startswith('aqm-mjx')]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr[-3000:]
+    assert f'process 1 of 2 could not join the run through the coordinator 127.0.0.1:{port} within 5 s' in lines[0]
+
+
+@pytest.mark.slow
+def test_evaluate_over_two_processes_equals_one_process(tmp_path):
+    """`aqm-mjx evaluate` of one checkpoint on the unchanged maze and a closure, as one process and as
+    two (the episodes sharded over both processes' devices): every episode's outcome is the same,
+    and process 0 alone writes."""
+    from aqm_mjx import run  # pylint: disable=import-outside-toplevel
+
+    ckpt, path = run.demo_run(str(tmp_path / 'demo'), steps=100)
+    argv = ['evaluate', '--checkpoint', ckpt, '--dataset', path, '--preset', 'ci', '--shift', 'base,close-3-3',
+            '--episodes', '2', '--horizon', '40', '--ablations', 'no-pruning']
+    one = str(tmp_path / 'one')
+    r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--out', one], env=ENV, capture_output=True,
+                       text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    two, port = str(tmp_path / 'two'), str(free_port())
+    procs = [subprocess.Popen([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--out', two, '--coordinator',
+                               f'127.0.0.1:{port}', '--num-processes', '2', '--process-id', str(i)], env=ENV,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=900) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][1][-3000:] + outs[1][1][-3000:]
+    assert 'wrote' in outs[0][0] and 'wrote' not in outs[1][0]
+    a, b = (np.load(os.path.join(f, 'episodes.npz')) for f in (one, two))
+    assert sorted(a.files) == sorted(b.files) and len(a['success']) == 2 * 2 * 5 * 2
+    for k in a.files:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    ra, rb = (json.load(open(os.path.join(f, 'results.json'))) for f in (one, two))
+    assert ra['summary'] == rb['summary'] and ra['legs'] == rb['legs']
+    assert (ra['device_count'], rb['device_count']) == (1, 2)
