@@ -56,6 +56,21 @@ class Agent(NamedTuple):
         return self._replace(aux=aux)
 
 
+class Decide(NamedTuple):
+    """The agent's side of a control step, apart from the physics, so that a host-stepped backend
+    (:func:`aqm_mjx.agent.rollout.make_host_rollout` over :mod:`aqm_mjx.envs.ogbench_env`) runs the same
+    decisions as the MJX program. Both functions are pure and batched over a leading ``[B]``; jit them
+    at the outside. A planner (:mod:`aqm_mjx.agent.planners`) makes one from an :class:`Agent`.
+
+    ``init(aux, graph, obs [B, O], goal [B, O], inputs) -> agents``;
+    ``act(aux, graph, agents, obs [B, O], goal [B, O], done [B], t, inputs) -> (actions [B, A] in
+    [-1, 1], agents)``. An agent without a quasimetric keeps ``agents`` as an empty tuple.
+    """
+
+    init: Callable
+    act: Callable
+
+
 def spec(name: str, **settings) -> tuple:
     """A rule or map a later stage resolves by name: ``(name, ((setting, value), ...))`` (hashable)."""
     return (name, tuple(sorted(settings.items())))

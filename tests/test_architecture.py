@@ -10,7 +10,7 @@ import aqm_mjx
 
 ROOT = pathlib.Path(aqm_mjx.__file__).parent
 # Stages in data-flow order: a module may import its own stage and earlier ones only.
-STAGES = ['_mjx', 'files', 'memory', 'presets', 'config', 'interface', 'progress', 'envs', 'data', 'learn', 'mapping', 'agent', 'evaluation',
+STAGES = ['_mjx', 'files', 'memory', 'processes', 'presets', 'config', 'interface', 'progress', 'envs', 'data', 'learn', 'mapping', 'agent', 'evaluation',
           'pipeline', 'assess', 'run', 'compare', 'cli']
 
 
@@ -199,3 +199,35 @@ def test_benchmarks_are_filed_and_results_cites_every_artefact():
         stem = entry.name if entry.is_dir() else entry.name.split('.')[0]
         assert f'benchmarks/results/{stem}' in results, f'benchmarks/results/{entry.name} is not cited by RESULTS.md'
     assert not re.findall(r'\bissues? \d+', results, re.I) and 'session' not in results.lower()
+
+
+def test_no_import_circles_and_the_rollout_finds_rules_in_the_planner_registry():
+    """The modules' imports (at any depth) form no circle; in agent/, the rule modules import nothing
+    of the rollout (they meet it through the interface's Decide and the planners registry)."""
+    from aqm_mjx.agent import planners  # pylint: disable=import-outside-toplevel
+
+    graph = {}
+    for module, path in modules():
+        graph[module] = {m if m in dict(modules()) else m.rsplit('.', 1)[0] for m, _ in imports(path)} - {module}
+    seen, stack, circles = set(), [], []
+
+    def visit(m):
+        if m in stack:
+            circles.append(stack[stack.index(m):] + [m])
+            return
+        if m in seen or m not in graph:
+            return
+        seen.add(m)
+        stack.append(m)
+        for n in sorted(graph[m]):
+            visit(n)
+        stack.pop()
+
+    for m in sorted(graph):
+        visit(m)
+    assert not [c for c in circles if any(x.startswith('aqm_mjx.agent') for x in c)], circles
+    for rule in ('gas_rule', 'hilp_rule', 'planners'):
+        assert 'aqm_mjx.agent.rollout' not in graph[f'aqm_mjx.agent.{rule}'], rule
+    assert planners.names() == ['gas', 'hilp']
+    with pytest.raises(ValueError, match="unknown test-time rule 'ttgs'; registered: gas, hilp"):
+        planners.get('ttgs')

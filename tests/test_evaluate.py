@@ -517,6 +517,15 @@ def test_learned_agent_map_and_cli(tmp_path, capsys):
     assert res['method'] == 'aqm' and res['config']['train']['preset'] == 'ci'
     for png in ('success.png', 'trajectories.png', 'heatmap.png'):
         assert (ev / png).read_bytes()[:4] == b'\x89PNG'
+    # episodes.npz: one row per episode, no pickle; every rate of the table recomputed from it
+    eps = np.load(ev / 'episodes.npz', allow_pickle=False)
+    assert len(eps['success']) == 3 * len(res['variants']) * 5 and set(eps['agent']) == set(res['agents'])
+    for a in res['agents']:
+        for v in res['variants']:
+            for t in range(1, 6):
+                rows = (eps['agent'] == a) & (eps['layout'] == v) & (eps['task'] == t)
+                assert rows.sum() == 1 and eps['success'][rows].mean() == res['summary'][a][v][f'task_{t}'], (a, v, t)
+    assert (eps['pruned'][eps['agent'] != 'aqm'] == 0).all() and (eps['legs'] >= 0).all()
     printed = capsys.readouterr().out
     assert 'aqm / base' in printed
     # the leg log: per agent and layout, ordered quantiles; the calibration line for no-pruning / base

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from aqm_mjx.agent import plan as planning
-from aqm_mjx.agent.rollout import Decide
+from aqm_mjx.interface import Decide
 from aqm_mjx.mapping.graph import Graph
 
 PATH_TOL = 1e-4  # relative slack of "on the shortest path"
@@ -81,7 +81,7 @@ def target(dist: jax.Array, to_goal: jax.Array, centers: jax.Array, mask: jax.Ar
 
 
 def make_decide(encode: Callable, act: Callable, horizon: float):
-    """GAS's :class:`~aqm_mjx.agent.rollout.Decide` half of a control step.
+    """GAS's :class:`~aqm_mjx.interface.Decide` half of a control step.
 
     Args:
         encode: ``(aux, obs [D]) -> phi [L]``.

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from aqm_mjx.agent.rollout import Decide
+from aqm_mjx.interface import Decide
 from aqm_mjx.mapping.states import PlanningStates
 
 
@@ -35,7 +35,7 @@ def waypoint(z: jax.Array, phi_s: jax.Array, phi_g: jax.Array, recursions: int, 
 
 
 def make_decide(encode: Callable, act: Callable, recursions: int, knns: int):
-    """HILP's :class:`~aqm_mjx.agent.rollout.Decide` half of a control step (rows with ``use_graph``
+    """HILP's :class:`~aqm_mjx.interface.Decide` half of a control step (rows with ``use_graph``
     False head for the goal, as HILP without planning).
 
     Args:

@@ -21,7 +21,8 @@ import numpy as np
 
 from aqm_mjx.agent.rules import (LEG_FIELDS, MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, keep_last_route,
                                   redirect, replan)
-from aqm_mjx.interface import Agent
+from aqm_mjx.agent import planners
+from aqm_mjx.interface import Agent, Decide
 from aqm_mjx.progress import EVERY, tick
 from aqm_mjx.mapping.graph import Graph
 
@@ -73,32 +74,11 @@ def freeze(live: jax.Array, old, new):
     return jax.tree.map(lambda o, n: jnp.where(live.reshape(live.shape + (1,) * (n.ndim - 1)), n, o), old, new)
 
 
-class Decide(NamedTuple):
-    """The agent's side of a control step, apart from the physics, so that a host-stepped backend
-    (:func:`make_host_rollout` over :mod:`aqm_mjx.envs.ogbench_env`) runs the same decisions as the MJX program. Both functions are pure
-    and batched over a leading ``[B]``; jit them at the outside.
-
-    ``init(aux, graph, obs [B, O], goal [B, O], inputs) -> agents``;
-    ``act(aux, graph, agents, obs [B, O], goal [B, O], done [B], t, inputs) -> (actions [B, A] in
-    [-1, 1], agents)``. An agent without a quasimetric keeps ``agents`` as an empty tuple.
-    """
-
-    init: Callable
-    act: Callable
-
-
 def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
     """The PLAN and ACT half of a control step of ``agent`` (see :func:`make_rollout`)."""
     slots = cfg.slots
-    if agent.rule is not None:  # a method's own rule (GAS's, HILP's planning), a spec resolved here
-        name, settings = agent.rule
-        if name == 'gas':
-            from aqm_mjx.agent import gas_rule  # noqa: PLC0415 (it imports Decide from here)
-            return gas_rule.make_decide(agent.encode, agent.skill, **dict(settings))
-        if name == 'hilp':
-            from aqm_mjx.agent import hilp_rule  # noqa: PLC0415
-            return hilp_rule.make_decide(agent.encode, agent.skill, **dict(settings))
-        raise ValueError(f'unknown test-time rule {name!r} (known: gas, hilp)')
+    if agent.rule is not None:  # a method's own rule (GAS's, HILP's planning), resolved in the registry
+        return planners.decide(agent)
     if not agent.plans:
         def init_flat(aux, graph, obs, goal, inputs):
             return ()
