@@ -220,11 +220,12 @@ class MazeEnv:
             raise RuntimeError("impl='warp' needs MuJoCo Warp on an NVIDIA GPU: pip install 'mujoco-mjx[warp]' "
                                f'(importing it said: {IMPORT_LOG.strip() or "nothing"})')
         self.mj_model = build_mj_model(agent, physics)
-        self.mjx_model = mjx.put_model(self.mj_model, impl=physics.impl)
+        local = jax.local_devices()[0]  # this process's: with several processes, devices()[0] may be another's
+        self.mjx_model = mjx.put_model(self.mj_model, device=local, impl=physics.impl)
         self.obs_size = self.mj_model.nq + self.mj_model.nv if agent == 'ant' else self.mj_model.nq
         self.action_size = self.mj_model.nu
         self._qpos0 = jnp.asarray(self.mj_model.qpos0, jnp.float32)
-        self.template = strip_weak_types(mjx.make_data(self.mjx_model))
+        self.template = strip_weak_types(mjx.make_data(self.mjx_model, device=local))
         self._layout = jnp.asarray(self.layout)
         self._task_init_xy = jnp.asarray([t.init_xy for t in self.tasks], jnp.float32)
         self._task_goal_xy = jnp.asarray([t.goal_xy for t in self.tasks], jnp.float32)

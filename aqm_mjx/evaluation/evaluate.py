@@ -6,8 +6,10 @@
 The episode table (:mod:`.protocol`) is cut into chunks of ``envs`` environments, one jitted call
 each, padded to a static size (a progress bar counts episodes). The environment axis is sharded
 over every device (``jax.sharding``, a 1-D mesh named ``env``; parameters and graph replicated);
-with ``jax.distributed.initialize()`` that is every device of every host. Results do not depend on
-the chunk size or the number of devices (episode keys depend on the episode alone).
+with several processes (:mod:`aqm_mjx.processes`) that is every device of every process. Episode keys
+depend on the episode alone, so the point maze's results do not depend on the chunk size or the
+number of devices (tested); the ant's contact physics, partitioned otherwise, rounds differently and
+its trajectories part (RESULTS.md section 7.7).
 """
 
 from __future__ import annotations
@@ -41,6 +43,15 @@ def put_global(x, sharding):
     """A global array from one host array that every process holds (single- and multi-host)."""
     x = np.asarray(x)
     return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+
+def replicate(tree, sharding):
+    """``tree``'s arrays replicated on ``sharding``'s devices: ``device_put`` in one process; with
+    several, each leaf built from this process's host copy (every process holds the same values),
+    since one process cannot place arrays on another's devices."""
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding)
+    return jax.tree.map(lambda x: put_global(np.asarray(x), sharding), tree)
 
 
 def fetch_global(x) -> np.ndarray:
@@ -163,7 +174,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
                                protocol.physics_preset)
     key = jax.random.PRNGKey(0) if key is None else key
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec('env'))
-    aux, graph = jax.device_put((agent.aux, graph), rep)
+    aux, graph = replicate((agent.aux, graph), rep)
     n = len(table.task)
     success, pruned, removed = np.zeros(n, bool), np.zeros(n, np.int32), np.zeros(n, np.int32)
     legs, n_legs = np.full((n, MAX_LEGS, LEG_FIELDS), -1.0, np.float32), np.zeros(n, np.int32)

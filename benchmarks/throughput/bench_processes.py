@@ -1,0 +1,88 @@
+"""`aqm-mjx evaluate` as one process and as two processes of this machine (JAX's multi-controller
+runtime over gloo, one CPU device each): wall time of each, compile included, and whether every
+episode's outcome (``episodes.npz``) and the table (``results.json``) are the same.
+
+    python benchmarks/throughput/bench_processes.py                                  # the shipped checkpoint
+    python benchmarks/throughput/bench_processes.py --episodes 1 --horizon 30       # a quick look
+
+Both runs evaluate in MJX (``--backend mjx``; several processes shard the episodes over every
+process's devices, which OGBench's host-stepped environments cannot), each with an empty compilation
+cache of its own. With ``--per-device-envs`` every device runs chunks of the same shape in both runs;
+without it one process runs every episode in one chunk and each of two processes half of it, and the
+ant's physics, vectorised over another batch, rounds differently (a chaotic system: trajectories
+part). On 2 cores the two processes share the cores that one process's XLA already uses,
+so the gain is small; the point is that the path is exact.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
+
+SHIPPED = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), 'checkpoints',
+                       'aqm-antmaze-medium-navigate-cpu-long')
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--checkpoint', default=SHIPPED)
+    p.add_argument('--shift', default='base,close-3-3')
+    p.add_argument('--episodes', type=int, default=2)
+    p.add_argument('--horizon', type=int, default=200)
+    p.add_argument('--per-device-envs', type=int, default=0,
+                   help='environments per device in both runs (one process: --envs N, two: --envs 2N), so that '
+                        'each device runs the same program shape; 0: one chunk of every episode in both')
+    p.add_argument('--out', default=None, help='JSON file for the rows')
+    a = p.parse_args()
+    work = tempfile.mkdtemp(prefix='bench-processes-')
+    argv = [sys.executable, '-m', 'aqm_mjx.cli', 'evaluate', '--checkpoint', a.checkpoint, '--backend', 'mjx',
+            '--shift', a.shift, '--episodes', str(a.episodes), '--horizon', str(a.horizon), '--ablations',
+            'no-pruning', '--calibrate', 'none']
+    env = dict(os.environ, JAX_PLATFORMS='cpu', XLA_FLAGS='')
+    rows, outs = [], {}
+    for n in (1, 2):
+        out = outs[n] = os.path.join(work, f'{n}p')
+        run_env = dict(env, JAX_COMPILATION_CACHE_DIR=os.path.join(work, f'cache{n}'))
+        with socket.socket() as s:
+            s.bind(('127.0.0.1', 0))
+            port = s.getsockname()[1]
+        envs = ['--envs', str(n * a.per_device_envs)] if a.per_device_envs else []
+        extra = (lambda i: envs) if n == 1 else (lambda i: envs + ['--coordinator', f'127.0.0.1:{port}',
+                                                                   '--num-processes', '2', '--process-id', str(i)])
+        t0 = time.perf_counter()
+        procs = [subprocess.Popen(argv + ['--out', out] + extra(i), env=run_env, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True) for i in range(n)]
+        done = [pr.communicate() for pr in procs]
+        wall = time.perf_counter() - t0
+        if any(pr.returncode for pr in procs):
+            raise SystemExit(f'{n} process(es) failed:\n' + '\n'.join(e[-2000:] for _, e in done))
+        res = json.load(open(os.path.join(out, 'results.json')))
+        rows.append(dict(row=f'{n} process{"es" * (n > 1)}', processes=n, devices=res['device_count'],
+                         envs_per_device=res['timing']['envs_per_chunk'] // res['device_count'],
+                         episodes=int(len(np.load(os.path.join(out, 'episodes.npz'))['success'])),
+                         wall_s=round(wall, 1), chunks=res['timing']['chunks'],
+                         evaluate_s=round(res['timing']['total_s'], 1)))
+        print(rows[-1], flush=True)
+    a_eps, b_eps = (np.load(os.path.join(outs[n], 'episodes.npz')) for n in (1, 2))
+    same = all(np.array_equal(a_eps[k], b_eps[k]) for k in a_eps.files)
+    ra, rb = (json.load(open(os.path.join(outs[n], 'results.json'))) for n in (1, 2))
+    rows.append(dict(row='two against one', episodes_identical=bool(same),
+                     table_identical=ra['summary'] == rb['summary'] and ra['legs'] == rb['legs'],
+                     wall_ratio=round(rows[0]['wall_s'] / rows[1]['wall_s'], 2)))
+    print(rows[-1], flush=True)
+    finish(rows, a.out)
+
+
+if __name__ == '__main__':
+    main()
