@@ -352,10 +352,18 @@ def test_the_parser_imports_no_jax_answers_at_once_and_errors_in_one_line():
 
     assert catalog.load() == catalog.build(), \
         "cli/catalog.json is stale: python -c 'from aqm_mjx.cli import catalog; catalog.write()'"
-    probe = ('import sys; from aqm_mjx.cli import build_parser; build_parser().parse_args(["run"]); '
+    probe = ('import sys; from aqm_mjx.cli import build_parser, main; build_parser().parse_args(["run"]); '
+             'main(["envs"]); main(["methods"]); '
              'print(sorted(m for m in ("jax", "mujoco", "flax", "numpy", "matplotlib") if m in sys.modules))')
     out = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == '[]', out.stdout
+    lines = out.stdout.strip().splitlines()
+    assert lines[-1] == '[]', out.stdout  # envs and methods listed, nothing heavy imported
+    assert any(ln.startswith('antmaze-giant ') for ln in lines) and any(ln.startswith('aqm ') for ln in lines)
+    for argv in (['--help'], ['--version'], ['envs'], ['methods']):
+        t0 = time.perf_counter()
+        r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', *argv], capture_output=True, text=True)
+        took = time.perf_counter() - t0
+        assert r.returncode == 0 and r.stdout and took < 3.0, (argv, took)  # about 0.1 s alone
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', 'evaluate', '--help'], capture_output=True, text=True)
     took = time.perf_counter() - t0

@@ -14,13 +14,14 @@ import socket
 import subprocess
 import sys
 import time
+import types
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from aqm_mjx import cli
+from aqm_mjx import cli, files
 from aqm_mjx.data import dataset as dsm
 from aqm_mjx.data import synthetic
 from aqm_mjx.learn import checkpoint as ckpt
@@ -682,6 +683,75 @@ def test_ctrl_c_during_a_save_leaves_no_partial_checkpoint(tmp_path, grid_file, 
     monkeypatch.setattr(ckpt.Checkpointer, 'save', real)
     assert cli.main(['train', '--dataset', grid_file, '--resume', '--out', out]) == 0
     assert fit.checkpoint_steps(out) == [100, 200]
+
+
+def test_a_disk_that_fills_in_the_middle_of_a_save_or_a_results_write(tmp_path, grid_file, capfd, monkeypatch):
+    """The disk fills while Orbax writes checkpoint 200 (half its files there): exit 2, one line naming the
+    checkpoint and the full disk, no temporary folder, checkpoint 100 kept byte for byte and metrics
+    not past it; --resume then ends bit-identical to a run never interrupted. A results.json or
+    episodes.npz write that fills the disk leaves the previous files whole."""
+    from aqm_mjx.evaluation import report  # pylint: disable=import-outside-toplevel
+
+    ref, out = str(tmp_path / 'ref'), str(tmp_path / 'run')
+    base = ['train', '--dataset', grid_file, '--env', 'pointmaze-medium', '--preset', 'ci']
+    assert cli.main(base + ['--out', ref]) == 0
+    real = ckpt.Checkpointer.save
+
+    def fills(self, step, state, config):
+        if step == 200:
+            def half_then_full(*a, **k):
+                tmp = os.path.join(out, 'checkpoints', '200.orbax-checkpoint-tmp-1764752001')
+                os.makedirs(tmp, exist_ok=True)
+                with open(os.path.join(tmp, 'part'), 'wb') as f:
+                    f.write(b'half an array')
+                raise OSError(28, 'No space left on device')
+            self._mngr.save = half_then_full
+        return real(self, step, state, config)
+
+    monkeypatch.setattr(ckpt.Checkpointer, 'save', fills)
+    capfd.readouterr()
+    assert cli.main(base + ['--out', out]) == 2
+    _, e = capfd.readouterr()
+    lines = _error_lines(e)
+    assert len(lines) == 1 and 'cannot write checkpoint 200' in lines[0] and 'No space left' in lines[0], e
+    assert 'Traceback' not in e and sorted(os.listdir(os.path.join(out, 'checkpoints'))) == ['100']
+    first = os.path.join(out, 'checkpoints', '100')
+    kept = {os.path.relpath(os.path.join(d, n), first): open(os.path.join(d, n), 'rb').read()
+            for d, _, ns in os.walk(first) for n in ns}
+    assert fit.load(out, log=lambda *_: None).step == 100  # the checkpoint before the failed save reads
+    assert {os.path.relpath(os.path.join(d, n), first): open(os.path.join(d, n), 'rb').read()
+            for d, _, ns in os.walk(first) for n in ns} == kept
+    monkeypatch.setattr(ckpt.Checkpointer, 'save', real)
+    assert cli.main(['train', '--dataset', grid_file, '--resume', '--out', out]) == 0
+    assert fit.checkpoint_steps(out) == [100, 200] and _leaves(out) == _leaves(ref)
+    # a results write that fills the disk: the old results.json and episodes.npz stay whole
+    folder = tmp_path / 'ev'
+    folder.mkdir()
+    (folder / 'results.json').write_text('{"old": true}')
+    np.savez(folder / 'episodes.npz', success=np.array([True]))
+    before = {f: (folder / f).read_bytes() for f in ('results.json', 'episodes.npz')}
+
+    def full_savez(path, **arrays):
+        with open(path, 'wb') as f:
+            f.write(b'PK half')
+        raise OSError(28, 'No space left on device')
+
+    monkeypatch.setattr(np, 'savez_compressed', full_savez)
+    res = types.SimpleNamespace(table=types.SimpleNamespace(agent=[0], variant=[0], task=[1], episode=[0]),
+                                agents=['aqm'], variants=['base'], success=[True], pruned=[0], removed=[0],
+                                n_legs=[1])
+    with pytest.raises(OSError, match='No space left'):
+        report.write_episodes(res, str(folder / 'episodes.npz'))
+    monkeypatch.setattr(files, 'os', types.SimpleNamespace(**{**vars(os), 'replace': _full_replace}))
+    with pytest.raises(OSError, match='No space left'):
+        files.write_json(str(folder / 'results.json'), {'new': True})
+    monkeypatch.undo()
+    assert {f: (folder / f).read_bytes() for f in ('results.json', 'episodes.npz')} == before
+    assert sorted(os.listdir(folder)) == ['episodes.npz', 'results.json']  # no temporary file left
+
+
+def _full_replace(src, dst):
+    raise OSError(28, 'No space left on device')
 
 
 def test_evaluating_a_folder_in_training_names_the_writer(tmp_path, grid_data):

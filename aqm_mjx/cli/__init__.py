@@ -37,6 +37,9 @@ def main(argv=None):
     files.COMMAND[:] = ['aqm-mjx'] + list(sys.argv[1:] if argv is None else argv)  # provenance and lock files
     try:
         return a.fn(a)
+    except BrokenPipeError:  # the reader went away (`aqm-mjx envs | head`): nothing to say to it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except (ValueError, TypeError, OSError, RuntimeError) as err:
         print(f'aqm-mjx: error: {_one_line(err)}', file=sys.stderr)
         return 2

@@ -1,9 +1,10 @@
-"""What the command line lists, without importing the package's JAX side: the registered methods,
-``compare``'s default methods, the physics presets and the fields of the map, agent and protocol
-configs (their help, choices and whether they take several values).
+"""What the command line lists, without importing the package's JAX side: the registered methods
+(and what each is), ``compare``'s default methods, the physics presets, the fields of the map, agent
+and protocol configs (their help, choices and whether they take several values), and the lines of
+``aqm-mjx envs``.
 
-``aqm-mjx --help`` (and every wrong argument) answers from ``catalog.json`` beside this file, in a
-fraction of a second; a command imports JAX only once its arguments are parsed. :func:`build` reads
+``aqm-mjx --help``, ``--version``, ``envs``, ``methods`` and every wrong argument answer from
+``catalog.json`` beside this file, in a fraction of a second; a command imports JAX only once its arguments are parsed. :func:`build` reads
 the same lists from the package itself; ``tests/test_cli.py`` checks that the two agree, and
 
     python -c 'from aqm_mjx.cli import catalog; catalog.write()'   # after a method, physics or field changes
@@ -31,8 +32,16 @@ def build() -> dict:
             dict(name=f.name, help=f.metadata.get('help', ''),
                  choices=list(f.metadata['choices']) if f.metadata.get('choices') else None,
                  many=isinstance(f.default, tuple)) for f in dataclasses.fields(cls)])
-    return dict(methods=list(methods.names()), compare_methods=list(compare.DEFAULT_METHODS),
-                physics=list(physics.NAMES), sections=sections)
+    from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
+
+    env_lines = []
+    for name in envs.ENV_NAMES:
+        _, maze = envs.parse_name(name)
+        env_lines.append(f'{name:<22} grid {envs.mazes.layout(maze).shape}  tasks: '
+                         + ', '.join(f'{t.init_ij}->{t.goal_ij}' for t in envs.mazes.tasks(maze)))
+    return dict(methods=list(methods.names()), summaries={m.name: m.summary for m in methods.METHODS.values()},
+                compare_methods=list(compare.DEFAULT_METHODS), physics=list(physics.NAMES), sections=sections,
+                envs=env_lines)
 
 
 def load() -> dict:

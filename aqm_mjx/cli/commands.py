@@ -28,13 +28,11 @@ def enable_compile_cache():
 
 
 def cmd_envs(a):
-    from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
+    """The environments and their tasks (from the catalog: no JAX imported)."""
+    del a
+    from aqm_mjx.cli import catalog  # pylint: disable=import-outside-toplevel
 
-    for name in envs.ENV_NAMES:
-        agent, maze = envs.parse_name(name)
-        tasks = envs.mazes.tasks(maze)
-        print(f'{name:<22} grid {envs.mazes.layout(maze).shape}  tasks: '
-              + ', '.join(f'{t.init_ij}->{t.goal_ij}' for t in tasks))
+    print('\n'.join(catalog.load()['envs']))
     return 0
 
 
@@ -132,11 +130,12 @@ def cmd_collect(a):
 
 
 def cmd_methods(a):
+    """The registered methods (from the catalog: no JAX imported)."""
     del a
-    from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.cli import catalog  # pylint: disable=import-outside-toplevel
 
-    for m in methods.METHODS.values():
-        print(f'{m.name:<10} {m.summary}')
+    for name, summary in catalog.load()['summaries'].items():
+        print(f'{name:<10} {summary}')
     return 0
 
 
