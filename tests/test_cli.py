@@ -337,8 +337,11 @@ def test_cpu_presets_evaluate_in_ogbench_environments_on_a_host_without_an_accel
     monkeypatch.setattr(assess, 'evaluate_checkpoint', lambda *a, overrides=(), **k: seen.append(list(overrides)))
     ship = os.path.join(os.path.dirname(os.path.dirname(__file__)), 'checkpoints',
                         'aqm-antmaze-medium-navigate-cpu-long')
+    capsys.readouterr()
     assert cli.main(['evaluate', '--checkpoint', ship, '--out', str(tmp_path / 'ev')]) == 0
+    assert "evaluation in OGBench's environments on the host (no accelerator" in capsys.readouterr().out
     assert cli.main(['evaluate', '--checkpoint', ship, '--backend', 'mjx', '--out', str(tmp_path / 'ev')]) == 0
+    assert 'on the host' not in capsys.readouterr().out
     assert cli.main(['evaluate', '--checkpoint', ship, '--preset', 'ci', '--out', str(tmp_path / 'ev')]) == 0
     assert [host[0] in s for s in seen] == [True, False, False]
 
