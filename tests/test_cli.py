@@ -428,3 +428,19 @@ def test_one_output_rule_for_every_command(tmp_path, monkeypatch, capsys):
     assert cli.main(['evaluate', '--checkpoint', str(train), '--out', str(train / 'eval2')]) == 0
     assert cli.main(['evaluate', '--checkpoint', str(train), '--out', str(ev)]) == 0
     assert seen == [str(train / 'eval2'), str(ev)]
+
+
+def test_compare_collects_in_the_physics_every_method_is_evaluated_in(tmp_path, monkeypatch):
+    """compare's data are collected in the physics preset named for every method, by --physics-preset
+    or by --set (protocol.)physics_preset; one method's own setting does not choose the data's."""
+    from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
+
+    seen = []
+    monkeypatch.setattr(compare, 'compare', lambda *a, collect_preset, **k: seen.append(collect_preset))
+    cases = [([], 'ogbench'), (['--physics-preset', 'fast'], 'fast'),
+             (['--set', 'protocol.physics_preset=newton-4'], 'newton-4'), (['--set', 'physics_preset=newton-2'],
+                                                                            'newton-2'),
+             (['--set', 'gcbc:physics_preset=fast'], 'ogbench')]
+    for i, (argv, want) in enumerate(cases):
+        assert cli.main(['compare', '--methods', 'gcbc', '--out', str(tmp_path / f'c{i}'), *argv]) == 0
+        assert seen[-1] == want, argv

@@ -224,6 +224,18 @@ def run_config(a):
                                      style=style).with_overrides(overrides_of(a))
 
 
+def named_physics(overrides) -> str:
+    """The physics preset the overrides name for every method (``--physics-preset`` or ``--set
+    [protocol.]physics_preset=NAME``, the last one given), else ``'ogbench'``: what the data are
+    collected in, as the evaluation steps it."""
+    found = 'ogbench'
+    for o in overrides:
+        key, _, value = o.partition('=')
+        if ':' not in key and key.strip().split('.')[-1] == 'physics_preset':
+            found = value.strip()
+    return found
+
+
 def start_processes(a) -> int:
     """Join the run's processes when the command names them (``--coordinator``, ``--num-processes``,
     ``--process-id``, or ``--distributed``); returns the process count (1: this process alone)."""
@@ -369,14 +381,14 @@ def cmd_compare(a):
 
     out = a.out or os.path.join('runs', f'compare-{a.env}-{a.style}')
     files.check_output(out, 'compare.json')
+    overrides = ((a.set or []) + ([f'protocol.backend={a.backend}'] if a.backend else [])
+                 + ([f'protocol.physics_preset={a.physics_preset}'] if a.physics_preset else [])
+                 + ([f'protocol.workers={a.workers}'] if a.workers is not None else []))
     compare.compare(a.env, a.methods, a.seeds, out, preset=a.preset, dataset=a.dataset, style=a.style,
                     collect_episodes=collect_episodes_of(a), collect_batch=a.collect_batch,
-                    collect_physics=collect_physics_of(a),
-                    overrides=(a.set or []) + ([f'protocol.backend={a.backend}'] if a.backend else [])
-                    + ([f'protocol.physics_preset={a.physics_preset}'] if a.physics_preset else [])
-                    + ([f'protocol.workers={a.workers}'] if a.workers is not None else []),
+                    collect_physics=collect_physics_of(a), overrides=overrides,
                     shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed,
-                    collect_preset=a.physics_preset or 'ogbench')
+                    collect_preset=named_physics(overrides))
     return 0
 
 
