@@ -69,6 +69,8 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
     variants = variants_for(env.maze, shift)  # a bad --shift or task id fails here, not after training
     plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants)
     memory.check_training(methods.get(cfg.method), cfg.train, env.obs_size, env.action_size)
+    t0 = time.perf_counter()
+    given = read_data(dataset, env) if dataset else None  # a damaged file is named before anything is written
     with files.run_lock(out):  # one writer per run folder
         # a folder trained with other settings is refused here, before run.json or data change
         fit.check_resumable(os.path.join(out, 'train'), cfg.method, cfg.train, env.obs_size, env.action_size)
@@ -76,10 +78,9 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
         times = {}
         seed = cfg.train.seed
         k_train, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
-        t0 = time.perf_counter()
         path = data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, physics=collect_physics,
                           physics_preset=collect_preset)
-        data = read_data(path, env)
+        data = given if given is not None else read_data(path, env)
         times['data_s'] = time.perf_counter() - t0
         # TRAIN (resumed when checkpoints exist; skipped when the run is complete)
         tdir = os.path.join(out, 'train')

@@ -434,10 +434,14 @@ def test_damaged_or_odd_dataset_files_are_named(tmp_path, grid_file, grid_data, 
         with pytest.raises(dsm.DatasetError, match=message):
             dsm.read_ogbench(path)
         out = str(tmp_path / f'run-{name}')
-        assert cli.main(['train', '--dataset', path, '--env', 'pointmaze-medium', '--out', out]) == 2
-        lines = _error_lines(capsys.readouterr().err)
-        assert len(lines) == 1 and re.search(message, lines[0]), (name, lines)
-        assert not os.path.exists(out)  # nothing left behind
+        for argv in (['train', '--dataset', path, '--env', 'pointmaze-medium', '--out', out],
+                     ['run', '--dataset', path, '--env', 'pointmaze-medium', '--preset', 'ci', '--out', out],
+                     ['compare', '--dataset', path, '--env', 'pointmaze-medium', '--preset', 'ci', '--methods',
+                      'gcbc', '--seeds', '1', '--out', out]):
+            assert cli.main(argv) == 2, argv
+            lines = _error_lines(capsys.readouterr().err)
+            assert len(lines) == 1 and re.search(message, lines[0]), (name, argv[0], lines)
+            assert not os.path.exists(out), argv  # nothing left behind: no run.json, compare.json or lock
     with pytest.raises(dsm.DatasetError, match='observations has dtype complex64'):
         dsm.to_device(complex_obs)  # arrays handed over in code are held to the same rule
 
