@@ -1,8 +1,11 @@
 """The second backend: OGBench's own MuJoCo environments stepped on the host, the agent jitted and
 batched (``protocol.backend='ogbench'``), against the MJX backend on the same episodes."""
 
+import os
+
 import gymnasium
 import jax
+
 import numpy as np
 import pytest
 
@@ -82,6 +85,33 @@ def test_worker_processes_step_the_same_episodes():
     for a, b in zip(s0, s1):
         for x, y in zip(a, b):
             np.testing.assert_array_equal(x, y)
+
+
+def test_a_worker_that_dies_or_fails_ends_the_evaluation_in_one_line_naming_it():
+    """A worker killed between two steps, or one whose environments raise: a RuntimeError naming which
+    worker of how many and why (no EOFError from the pipe), and close() still ends the others."""
+    import signal  # pylint: disable=import-outside-toplevel
+
+    grids = np.broadcast_to(mazes.layout('medium'), (4, 8, 8))
+    e = OGBenchEnvs('antmaze-medium', workers=2)
+    try:
+        e.reset(np.arange(4), np.arange(4) + 1, grids)
+        e.step(np.zeros((4, 8)))
+        os.kill(e._procs[1].pid, signal.SIGKILL)  # pylint: disable=protected-access
+        with pytest.raises(RuntimeError, match=r"OGBench's worker process 2 of 2 \(pid \d+\) ended \(exit code -9\) "
+                                               'in the middle of the evaluation; nothing was written'):
+            for _ in range(3):
+                e.step(np.zeros((4, 8)))
+    finally:
+        e.close()
+    e = OGBenchEnvs('antmaze-medium', workers=2)
+    try:
+        e.reset(np.arange(4), np.arange(4) + 1, grids)
+        with pytest.raises(RuntimeError, match="OGBench's worker process 1 of 2 failed: ValueError"):
+            e.step(np.zeros((4, 3)))  # actions of the wrong width reach the workers' environments
+    finally:
+        e.close()
+    assert not any(p.is_alive() for p in e._procs)  # pylint: disable=protected-access
 
 
 def test_both_backends_reroute_around_a_closed_corridor():

@@ -139,18 +139,25 @@ class _Slice:
         self.pool, self.active = {}, []
 
 
+WORKER_ERROR = '__worker_error__'  # the first item of a reply that carries a worker's exception
+
+
 def _worker(conn, agent, maze):
     envs = _Slice(agent, maze)
     try:
         while True:
             msg = conn.recv()
-            if msg[0] == 'reset':
-                conn.send(envs.reset(*msg[1:]))
-            elif msg[0] == 'step':
-                conn.send(envs.step(*msg[1:]))
-            else:
-                break
-    except EOFError:
+            try:
+                if msg[0] == 'reset':
+                    reply = envs.reset(*msg[1:])
+                elif msg[0] == 'step':
+                    reply = envs.step(*msg[1:])
+                else:
+                    break
+            except Exception as e:  # pylint: disable=broad-except  (handed to the parent, named there)
+                reply = (WORKER_ERROR, f'{type(e).__name__}: {" ".join(str(e).split())}')
+            conn.send(reply)
+    except (EOFError, OSError):
         pass
     finally:
         envs.close()
@@ -211,6 +218,34 @@ class OGBenchEnvs:
         self.live_steps = 0  # environment steps taken (episodes that were not done), over the object's life
         self.success = self.done = np.zeros(0, bool)
 
+    def _gather(self) -> list:
+        """Every worker's reply to the message just sent; a worker that died or failed ends the
+        evaluation with one line naming it (the caller writes nothing: results are written at the end)."""
+        parts = []
+        for i, c in enumerate(self._conns):
+            try:
+                reply = c.recv()
+            except (EOFError, OSError):
+                raise self._dead(i) from None
+            if isinstance(reply, tuple) and len(reply) == 2 and isinstance(reply[0], str) and reply[0] == WORKER_ERROR:
+                raise RuntimeError(f"OGBench's worker process {i + 1} of {self.workers} failed: {reply[1]}")
+            parts.append(reply)
+        return parts
+
+    def _dead(self, i: int) -> RuntimeError:
+        p = self._procs[i]
+        p.join(timeout=2)
+        return RuntimeError(f"OGBench's worker process {i + 1} of {self.workers} (pid {p.pid}) ended (exit code "
+                            f'{p.exitcode}) in the middle of the evaluation; nothing was written: run the same '
+                            'command again')
+
+    def _send(self, messages) -> None:
+        for i, (c, m) in enumerate(zip(self._conns, messages)):
+            try:
+                c.send(m)
+            except (BrokenPipeError, OSError):
+                raise self._dead(i) from None
+
     def _split(self, n: int) -> list:
         bounds = np.linspace(0, n, self.workers + 1).round().astype(int)
         return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
@@ -231,9 +266,8 @@ class OGBenchEnvs:
             out = self._local.reset(seeds, task_ids, grids, cells)
         else:
             self._slices = self._split(n)
-            for c, s in zip(self._conns, self._slices):
-                c.send(('reset', seeds[s], task_ids[s], grids[s], cells[s]))
-            parts = [c.recv() for c in self._conns]
+            self._send([('reset', seeds[s], task_ids[s], grids[s], cells[s]) for s in self._slices])
+            parts = self._gather()
             out = tuple(np.concatenate([p[k] for p in parts]) for k in range(3))
         self.steps = 0
         self.success, self.done = np.zeros(n, bool), np.zeros(n, bool)
@@ -245,9 +279,8 @@ class OGBenchEnvs:
         if self._local is not None:
             obs, xy, success = self._local.step(actions, live)
         else:
-            for c, s in zip(self._conns, self._slices):
-                c.send(('step', actions[s], live[s]))
-            parts = [c.recv() for c in self._conns]
+            self._send([('step', actions[s], live[s]) for s in self._slices])
+            parts = self._gather()
             obs, xy, success = (np.concatenate([p[k] for p in parts]) for k in range(3))
         self.steps += 1
         self.live_steps += int(live.sum())
