@@ -134,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "than MJX's; not for antmaze-teleport)")
     c.add_argument('--physics-preset', default='ogbench', choices=physics_names,
                    help="the physics settings of either: 'ogbench' (OGBench's: RK4, Newton 100/50), 'fast' (Newton "
-                        '2/4, RESULTS 7.6) or another row of the fidelity study')
+                        '4/8, RESULTS 7.6) or another row of the fidelity study')
     c.add_argument('--iterations', type=int, default=None,
                    help="MJX solver iterations (default MuJoCo's: 100); fewer trade fidelity for speed")
     c.add_argument('--ls-iterations', type=int, default=None, help="MJX line-search iterations (default MuJoCo's: 50)")
@@ -224,7 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
                         'the host; same as --set protocol.backend=ogbench)')
     k.add_argument('--physics-preset', default=None, choices=physics_names,
                    help="physics of the collection and of the MJX evaluation: 'ogbench' (default) or 'fast' (Newton "
-                        '2/4, RESULTS 7.6); same as --set protocol.physics_preset=NAME')
+                        '4/8, RESULTS 7.6); same as --set protocol.physics_preset=NAME')
     k.add_argument('--workers', type=int, default=None, help="with --backend ogbench: processes stepping the "
                                                              'environments (default 0: this process)')
     k.add_argument('--out', default=None, help='comparison folder (default runs/compare-ENV-STYLE)')
