@@ -335,8 +335,9 @@ def cmd_evaluate(a):
     from aqm_mjx.learn import fit  # pylint: disable=import-outside-toplevel
 
     named = [a.preset] if a.preset else [preset_for_name(fit.read_meta(c)[1].preset) for c in a.checkpoint]
-    if n_processes == 1 and host_backend(named, overrides):
-        overrides += host_backend(named, overrides)
+    host = host_backend(named, overrides) if n_processes == 1 else []
+    if host:
+        overrides += host
         print("evaluation in OGBench's environments on the host (no accelerator; --backend mjx for MJX)")
     elif any(o.replace(' ', '').split('.')[-1] == 'backend=ogbench' for o in overrides):
         raise ValueError("several processes evaluate in MJX, the episodes sharded over every process's devices; "
