@@ -22,6 +22,7 @@ that are trained and evaluated, resumes one that was training, and redoes only t
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -30,7 +31,7 @@ from typing import Optional, Sequence
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx import envs, files, memory, presets
+from aqm_mjx import envs, files, memory, presets, processes
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.evaluation import plots, report, stats
 from aqm_mjx.evaluation.protocol import plan_episodes
@@ -169,8 +170,9 @@ def _cell(seed_means: Sequence[float], task_means: dict, episodes: int) -> dict:
                 episodes=n, **{f'task_{t}': m for t, m in task_means.items()})
 
 
-def _write_tables(out, spec, per_method, seed_ids, cfgs, log) -> dict:
-    """``OUT/results.json``, ``table.md`` and ``success.png`` of the methods evaluated so far."""
+def _write_tables(out, spec, per_method, seed_ids, cfgs, log, write: bool = True) -> dict:
+    """``OUT/results.json``, ``table.md`` and ``success.png`` of the methods evaluated so far (with
+    ``write`` False, the comparison alone: another process writes it)."""
     names = list(per_method)
     first = per_method[names[0]]
     rows = aggregate(per_method, seed_ids)
@@ -180,7 +182,8 @@ def _write_tables(out, spec, per_method, seed_ids, cfgs, log) -> dict:
     configs = {n: per_method[n].get('config') or cfgs[n].to_dict() for n in names}
     result = dict(spec, methods=names, tasks=tasks, episodes=episodes, variants=first['variants'], rows=rows,
                   configs=configs, split=first.get('split'))
-    _write(out, result, log)
+    if write:
+        _write(out, result, log)
     return result
 
 
@@ -461,30 +464,48 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
     for c in cfgs.values():
         plan_episodes(env, c.protocol, c.agent.kappa, variants)  # bad task ids fail before any work
         memory.check_training(methods.get(c.method), c.train, env.obs_size, env.action_size, seeds)
+    several, writer = jax.process_count() > 1, processes.writer()
+    if seeds < jax.process_count():
+        raise ValueError(f'--seeds {seeds} over {jax.process_count()} processes: every process trains at least one '
+                         'seed; give more seeds or fewer processes')
+    if several and any(c.protocol.backend == 'ogbench' for c in cfgs.values()):
+        raise ValueError("several processes evaluate in MJX, the episodes sharded over every process's devices; "
+                         "drop --backend ogbench (OGBench's environments step on one host)")
     seed_ids = [first_seed + i for i in range(seeds)]
     spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
     given = assess.read_data(dataset, env) if dataset else None  # a damaged file is named before anything is written
-    with files.run_lock(out):  # one writer per run folder
+    # several processes (aqm_mjx.processes): process 0 holds the folder's lock and writes the comparison's files,
+    # process p trains seeds p, p + N, ... into their own folders; all of them evaluate every checkpoint together
+    with files.run_lock(out) if writer else contextlib.nullcontext():
         all_names, recorded = _check_spec(out, spec, names)
+        processes.barrier('compare: request checked')  # every process read compare.json before it changes
         cpath = os.path.join(out, 'compare.json')
         kept = {} if recorded is None else dict(data_sha256=recorded)
-        files.write_json(cpath, dict(spec, methods=all_names, **kept), makedirs=True)
-
-        path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
-                              physics=collect_physics, physics_preset=collect_preset)
+        if writer:
+            files.write_json(cpath, dict(spec, methods=all_names, **kept), makedirs=True)
+            path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
+                                  physics=collect_physics, physics_preset=collect_preset)
+        processes.barrier('compare: data written')
+        if not writer:  # process 0 collected it: found, not collected again
+            path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
+                                  physics=collect_physics, physics_preset=collect_preset)
         data = given if given is not None else assess.read_data(path, env)
         digest = ds_io.fingerprint(data)
         if recorded is not None and recorded != digest:
             raise ValueError(f'{path}: the data changed since this comparison began (sha256 {digest[:16]}... now, '
                              f'{recorded[:16]}... in {cpath}): its methods would not share their data; restore '
                              'the file or choose another --out')
-        if recorded is None:  # the first data stage of this folder: record what its methods share
+        if recorded is None and writer:  # the first data stage of this folder: record what its methods share
             files.write_json(cpath, dict(spec, methods=all_names, data_sha256=digest))
         spec = dict(spec, data_sha256=digest)  # into results.json beside the request
         log(f'data: {path} ({len(data["observations"])} states, sha256 {digest[:16]}...)')
         log(f'{len(names)} method(s) x {seeds} seed(s) ({preset} preset), one method at a time: its seeds trained '
             f'as one vmapped program, then evaluated on the episodes of PRNGKey({eval_seed}); the table grows as each '
             'ends')
+        if several:  # (fit.train_seeds splits them: seed i on process i mod N)
+            log(f'process {jax.process_index()} of {jax.process_count()} trains seed(s) '
+                f'{[s for i, s in enumerate(seed_ids) if i % jax.process_count() == jax.process_index()]}; the '
+                'learning curve is not drawn across processes')
         per_method, result = {}, None
         for i, (n, c) in enumerate(cfgs.items()):
             folders, ev = seed_folders(out, n, seed_ids), os.path.join(out, 'eval', n)
@@ -492,17 +513,21 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
             keys = jnp.stack([stage_keys(jax.random.PRNGKey(s))[0] for s in seed_ids])
             fit.train_seeds(n, [dataclasses.replace(c.train, seed=s) for s in seed_ids], data, folders, keys,
                             dataset_path=os.path.abspath(path), log=log,
-                            curve=assess.learning_curve(env, data, c, stage_keys(jax.random.PRNGKey(eval_seed))[2], n))
+                            curve=None if several else assess.learning_curve(
+                                env, data, c, stage_keys(jax.random.PRNGKey(eval_seed))[2], n))
+            processes.barrier(f'compare: {n} trained')  # every seed's checkpoint is on disk
             res = _evaluation(ev, folders, c.train.steps)
             if res is not None:
                 log(f'{n}: evaluated already ({ev}/results.json)')
             else:
                 assess.evaluate_checkpoints(folders, ev, cfg=c, dataset=path, shift=shift, seed=eval_seed, log=log)
+                processes.barrier(f'compare: {n} evaluated')  # process 0 wrote its results.json
                 res = files.read_json(os.path.join(ev, 'results.json'))  # as a re-run reads it (JSON types)
             per_method[n] = res
-            _draw_curves(out, {m: seed_folders(out, m, seed_ids) for m in per_method}, env_name, preset)
+            if writer:
+                _draw_curves(out, {m: seed_folders(out, m, seed_ids) for m in per_method}, env_name, preset)
             result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method},
-                                   log if i + 1 == len(cfgs) else (lambda *_: None))
+                                   log if i + 1 == len(cfgs) else (lambda *_: None), write=writer)
             if i + 1 < len(cfgs):
                 log(f'{n}: done; {out}/table.md now holds {", ".join(per_method)}')
         return result

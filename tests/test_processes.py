@@ -97,3 +97,82 @@ def test_evaluate_over_two_processes_equals_one_process(tmp_path):
     ra, rb = (json.load(open(os.path.join(f, 'results.json'))) for f in (one, two))
     assert ra['summary'] == rb['summary'] and ra['legs'] == rb['legs']
     assert (ra['device_count'], rb['device_count']) == (1, 2)
+
+
+def _final_states(folder: str) -> dict:
+    """{run folder: its newest checkpoint's arrays} of a comparison folder."""
+    import glob  # pylint: disable=import-outside-toplevel
+
+    import jax  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx.learn import fit  # pylint: disable=import-outside-toplevel
+
+    return {os.path.relpath(f, folder): [np.asarray(x) for x in jax.tree.leaves(fit.load(f, log=lambda *_: None).state)]
+            for f in sorted(glob.glob(os.path.join(folder, 'train', '*', 'seed_*')))}
+
+
+@pytest.mark.slow
+def test_compare_over_two_processes_equals_one_process_and_resumes_after_a_kill(tmp_path):
+    """`aqm-mjx compare --seeds 2` of two flat methods over two processes (seed i trained on process i,
+    process 0 writing every checkpoint): process 1 killed mid-training ends process 0 with one line;
+    the same command again resumes, and every final state and episode equals the one-process run's.
+
+    Bit for bit on antmaze's shapes (29-d observations, 8-d actions: random ones here), where XLA's CPU
+    program of one seed computes as each seed of the vmapped pair does; on pointmaze's 2-d ones the
+    two programs differ in the last bits (RESULTS.md section 7.7)."""
+    import time  # pylint: disable=import-outside-toplevel
+
+    rng = np.random.default_rng(0)
+    path = str(tmp_path / 'antmaze-medium-navigate.npz')
+    terminals = np.zeros(5000, bool)
+    terminals[99::100] = True
+    np.savez(path, observations=rng.normal(size=(5000, 29)).astype(np.float32),
+             actions=rng.uniform(-1, 1, (5000, 8)).astype(np.float32), terminals=terminals)
+    argv = ['compare', '--env', 'antmaze-medium', '--methods', 'gcbc', 'gcivl', '--seeds', '2', '--preset', 'ci',
+            '--dataset', path, '--set', 'train.steps=1000', '--set', 'protocol.episodes=1',
+            '--set', 'protocol.horizon=40']
+    one = str(tmp_path / 'one')
+    r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--out', one], env=ENV, capture_output=True,
+                       text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    two = str(tmp_path / 'two')
+
+    def start(port):
+        return [subprocess.Popen([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--out', two, '--coordinator',
+                                  f'127.0.0.1:{port}', '--num-processes', '2', '--process-id', str(i)], env=ENV,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+
+    procs = start(free_port())
+    mark = os.path.join(two, 'train', 'gcbc', 'seed_1', 'checkpoints', '300')
+    t_end = time.monotonic() + 600
+    while not os.path.isdir(mark) and time.monotonic() < t_end and procs[1].poll() is None:
+        time.sleep(0.05)
+    assert os.path.isdir(mark), procs[1].communicate()[1][-3000:]
+    procs[1].kill()
+    t_kill = time.monotonic()
+    _, err = procs[0].communicate(timeout=300)
+    waited = time.monotonic() - t_kill
+    procs[1].communicate()
+    lines = [ln for ln in err.splitlines() if ln.startswith('aqm-mjx')]
+    assert procs[0].returncode == 2 and len(lines) == 1, err[-3000:]
+    assert 'process 0 of 2' in lines[0] and 'run the same command again on every process' in lines[0], lines
+    assert waited < 60 and 'Check failure stack trace' not in err  # at once, not after XLA's shutdown barrier
+    steps = sorted(int(s) for s in os.listdir(os.path.dirname(mark)))
+    assert steps and max(steps) < 1000  # killed mid-training
+
+    procs = start(free_port())
+    outs = [p.communicate(timeout=900) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][1][-3000:] + outs[1][1][-3000:]
+    assert 'gcbc: resuming 1 seed(s) at step' in outs[0][0] and 'gcbc: resuming 1 seed(s) at step' in outs[1][0]
+    assert 'wrote' in outs[0][0] and 'wrote' not in outs[1][0]  # process 0 alone writes the tables
+    a, b = _final_states(one), _final_states(two)
+    assert list(a) == list(b) == ['train/gcbc/seed_0', 'train/gcbc/seed_1', 'train/gcivl/seed_0', 'train/gcivl/seed_1']
+    for k in a:
+        assert len(a[k]) == len(b[k]) and all(np.array_equal(x, y) for x, y in zip(a[k], b[k])), k
+    for m in ('gcbc', 'gcivl'):
+        for s in (0, 1):
+            ea, eb = (np.load(os.path.join(f, 'eval', m, f'{m}:seed_{s}', 'episodes.npz')) for f in (one, two))
+            for k in ea.files:
+                np.testing.assert_array_equal(ea[k], eb[k], err_msg=f'{m} seed {s} {k}')
+    ra, rb = (json.load(open(os.path.join(f, 'results.json'))) for f in (one, two))
+    assert ra['rows'] == rb['rows'] and ra['data_sha256'] == rb['data_sha256']

@@ -30,6 +30,16 @@ def _one_line(err: BaseException) -> str:
     return text or type(err).__name__
 
 
+def _leave_processes(code: int) -> None:
+    """With several processes (:mod:`aqm_mjx.processes`), end this one now with ``code``: JAX's own exit
+    would wait at its shutdown barrier for partners that may be gone, then abort with a stack trace."""
+    jax = sys.modules.get('jax')  # (a command that never imported JAX started no processes)
+    if jax is not None and jax.distributed.is_initialized():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)  # pylint: disable=protected-access
+
+
 def main(argv=None):
     a = build_parser().parse_args(argv)
     from aqm_mjx import files  # pylint: disable=import-outside-toplevel
@@ -42,6 +52,7 @@ def main(argv=None):
         return 0
     except (ValueError, TypeError, OSError, RuntimeError) as err:
         print(f'aqm-mjx: error: {_one_line(err)}', file=sys.stderr)
+        _leave_processes(2)
         return 2
     except KeyboardInterrupt:
         # files are written atomically and checkpoints are complete or absent: nothing half-written

@@ -374,7 +374,9 @@ def evaluation_out(checkpoints, out=None) -> str:
 
 
 def cmd_compare(a):
-    """Several methods, seeds vmapped, on the same data and episodes: a table and a bar chart."""
+    """Several methods, seeds vmapped, on the same data and episodes: a table and a bar chart (with
+    several processes: each trains its share of the seeds, all evaluate together, process 0 writes)."""
+    start_processes(a)  # before any other JAX call: every process runs this same command
     enable_compile_cache()
     from aqm_mjx import compare  # pylint: disable=import-outside-toplevel
 

@@ -228,6 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument('--workers', type=int, default=None, help="with --backend ogbench: processes stepping the "
                                                              'environments (default 0: this process)')
     k.add_argument('--out', default=None, help='comparison folder (default runs/compare-ENV-STYLE)')
+    process_options(k)
     k.set_defaults(fn=commands.cmd_compare)
     g = sub.add_parser(
         'merge', help='one table from several compare folders on the same data and episodes',

@@ -80,10 +80,21 @@ class CheckpointError(RuntimeError):
 
 
 def _manager(directory: str, keep: Optional[int] = None, create: bool = True) -> ocp.CheckpointManager:
-    # a writer (create=True, under the run folder's lock) removes what a killed save left behind
-    opts = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, cleanup_tmp_directories=create,
-                                        enable_async_checkpointing=False)  # saves end (or fail) before returning
-    return ocp.CheckpointManager(os.path.abspath(os.path.join(directory, 'checkpoints')), options=opts)
+    # a writer (create=True, under the run folder's lock) removes what a killed save left behind. Every
+    # manager is this process's alone: a run folder has one writer, and with several processes
+    # (aqm_mjx.processes) each trains its own seeds and reads any checkpoint without waiting for the others
+    pid = jax.process_index()
+    alone = ocp.options.MultiprocessingOptions(primary_host=pid, active_processes={pid},
+                                               barrier_sync_key_prefix=f'process_{pid}')
+    root = os.path.abspath(os.path.join(directory, 'checkpoints'))
+    if create:  # (Orbax creates it only for managers of every process)
+        os.makedirs(root, exist_ok=True)
+    opts = ocp.CheckpointManagerOptions(max_to_keep=keep, create=False, cleanup_tmp_directories=create,
+                                        enable_async_checkpointing=False,  # saves end (or fail) before returning
+                                        multiprocessing_options=alone)
+    handlers = {'state': ocp.StandardCheckpointHandler(multiprocessing_options=alone),
+                'config': ocp.JsonCheckpointHandler(multiprocessing_options=alone)}
+    return ocp.CheckpointManager(root, options=opts, item_handlers=handlers)
 
 
 class Checkpointer:
@@ -104,6 +115,7 @@ class Checkpointer:
         full, read-only) leaves no temporary folder behind and raises :class:`CheckpointError`
         with one line saying why; the checkpoints already there are untouched."""
         config = dict(config, **{DIGEST_KEY: state_digest(state)})
+        state = jax.device_get(state)  # host arrays: what one process of several may save alone
         try:
             with quiet():
                 self._mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),
@@ -156,11 +168,13 @@ class Checkpointer:
         if not candidates:
             raise CheckpointError(f'no checkpoint in {os.path.join(self.directory, "checkpoints")}')
         errors = []
+        host = jax.tree.map(lambda x: np.zeros(np.shape(x), jnp.result_type(x)), template)
         for s in candidates:
             try:
-                with quiet():
-                    out = self._mngr.restore(s, args=ocp.args.Composite(state=ocp.args.StandardRestore(template),
+                with quiet():  # read as host arrays (any process may read any checkpoint), then put on the device
+                    out = self._mngr.restore(s, args=ocp.args.Composite(state=ocp.args.StandardRestore(host),
                                                                         config=ocp.args.JsonRestore()))
+                out = dict(out, state=jax.tree.map(jnp.asarray, out['state']))
                 faults = state_faults(out['state'], dict(out['config']))
                 if faults:
                     raise CheckpointError(f'it fails its check: {"; ".join(faults)}')

@@ -21,6 +21,7 @@ from typing import Any, Callable, NamedTuple, Optional, Union
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from aqm_mjx import files
 from aqm_mjx.data import dataset as ds_io
@@ -178,9 +179,12 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
     trim_metrics(metrics_path, start)  # a fresh start drops what a killed run left
     files.write_json(cfg_path, meta)
     chunk = jax.jit(chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
-    state, step = _host_loop(chunk, state, ds, cfg, start, [out], [saver], [meta], [set()], None,
-                             f'train {method.name} {cfg.preset}', progress, method.progress,
-                             _curve_points(curve, method, [cfg], learner, [meta]), curve)
+    try:
+        state, step = _host_loop(chunk, state, ds, cfg, start, [out], _saving([saver], [meta], [set()], lambda x, i: x),
+                                 None, f'train {method.name} {cfg.preset}', progress, method.progress,
+                                 _curve_points(curve, method, [cfg], learner, [meta]), curve)
+    finally:
+        saver.close()
     return Trained(method.name, cfg, learner, state, step, meta)
 
 
@@ -232,8 +236,18 @@ def _append(f, line: str) -> None:
         raise files.OutputError(f'cannot append to {f.name}: {e.strerror or e}') from None
 
 
-def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], savers: list, metas: list[dict],
-               skip: list[set], seeds: Optional[int], desc: str, progress: bool, shown: dict,
+def _saving(savers: list, metas: list[dict], skip: list[set], pick: Callable) -> Callable:
+    """``save(step, state)``: each saver's checkpoint of its seed (``pick(state, i)``), except the steps
+    in ``skip[i]`` (already on disk)."""
+    def save(step, state):
+        for i, (saver, done) in enumerate(zip(savers, skip)):
+            if step not in done:
+                saver.save(step, jax.tree.map(lambda x, i=i: pick(x, i), state), metas[i])
+    return save
+
+
+def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], save: Callable,
+               seeds: Optional[int], desc: str, progress: bool, shown: dict,
                points: Optional[Callable] = None, curve: Optional[Curve] = None):
     """The host side of training, shared by :func:`train` (``seeds=None``: one unvmapped state) and
     :func:`train_seeds` (``seeds=S``: every leaf stacked on a leading axis, one folder per seed).
@@ -241,8 +255,8 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
     Each chunk: run it, check every metric and every floating leaf of the state for finiteness
     (on the first non-finite value: write that chunk's metric line, stop with :class:`DivergedError`;
     no checkpoint of a non-finite state is ever written), append strict-JSON metric lines every
-    ``log_every`` updates, move the bar, save checkpoints every ``checkpoint_every`` updates (not
-    those in ``skip[i]``, already on disk). ``shown``: the metrics on the bar, ``{metric: short name}``
+    ``log_every`` updates, move the bar, ``save(step, state)`` every ``checkpoint_every`` updates
+    (:func:`_saving`). ``shown``: the metrics on the bar, ``{metric: short name}``
     (the method's ``progress``). ``points(step, i, state_i)``: after each checkpoint, seed ``i``'s
     learning-curve metrics, appended as a line of their own (then ``curve.draw(outs)``). Returns
     ``(state, step)``.
@@ -277,23 +291,19 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
             if any(bad):
                 i = next(i for i, b in enumerate(bad) if b)
                 raise _diverged(cfg, step, bad[i], '' if seeds is None else f' (seed folder {outs[i]})',
-                                savers[i].steps(), start)
+                                checkpoint_steps(outs[i]), start)
             if bar is not None:
                 # postfix first without a redraw: update() draws once (a refresh here wrote every line twice in logs)
                 bar.set_postfix({shown[k]: f'{v:.3g}' for k, v in lines[0].items() if k in shown},
                                 refresh=False)
                 bar.update(cfg.updates_per_call)
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-                for i, (saver, done) in enumerate(zip(savers, skip)):
-                    if step not in done:
-                        saver.save(step, jax.tree.map(lambda x, i=i: pick(x, i), state), metas[i])
+                save(step, state)
                 if points is not None:
                     _curve_point(points, state, step, cfg, metric_files, pick, n, bar, curve, outs)
     finally:
         for mf in metric_files:
             mf.close()
-        for saver in savers:
-            saver.close()
         if bar is not None:
             bar.close()
     return state, step
@@ -328,13 +338,20 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
     there is none); a checkpoint a folder already holds is not written again (the run is
     deterministic, so it is the same state), and metric lines past the restart step are dropped.
 
+    Several processes (:mod:`aqm_mjx.processes`, ``N`` of them, ``N <= S``): every process passes every
+    seed's config, folder and key, and trains its share, seed ``i`` on process ``i mod N``, as its own
+    vmapped program; at each checkpoint step
+    the processes gather their states and process 0 writes every seed's checkpoint (Orbax writes host
+    arrays from process 0 alone); each process writes its own folders' ``config.json`` and metric
+    lines. A resume starts every process at the newest step every folder holds.
+
     Args:
         cfgs: one config per seed, equal except ``seed``.
         outs: ``S`` run folders.
         keys: ``[S, 2]`` initialisation keys (ignored for folders restored from a checkpoint).
         curve: evaluated for every seed at every checkpoint step (:class:`Curve`).
     Returns:
-        one :class:`Trained` per seed.
+        one :class:`Trained` per seed this process trained.
     """
     method = methods.get(method) if isinstance(method, str) else method
     n = len(outs)
@@ -344,19 +361,26 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
         raise ValueError(f'the run folders repeat: {outs}')
     if any(dataclasses.replace(c, seed=0) != dataclasses.replace(cfgs[0], seed=0) for c in cfgs):
         raise ValueError('train_seeds: the configs differ in more than their seed; train them separately')
+    count = jax.process_count()
+    if count > n:
+        raise ValueError(f'{n} seed(s) over {count} processes: every process trains at least one; give --seeds '
+                         f'{count} or more, or fewer processes')
+    own = [i for i in range(n) if i % count == jax.process_index()]  # this process's share
     with contextlib.ExitStack() as stack:
-        for o in outs:
-            stack.enter_context(files.run_lock(o))  # one writer per run folder
-        return _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log, curve)
+        for i in own:
+            stack.enter_context(files.run_lock(outs[i]))  # one writer per run folder
+        return _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log, curve, own)
 
 
-def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log, curve) -> list[Trained]:
+def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log, curve, own) -> list[Trained]:
     n, cfg = len(outs), cfgs[0]
+    spread = jax.process_count() > 1  # several processes, each training its share
     ds = ds_io.to_device(data)
     obs_size, action_size = ds.observations.shape[1], ds.actions.shape[1]
     data_sha = fingerprint(data)
     done = [checkpoint_steps(o) for o in outs]
-    for o, d, c in zip(outs, done, cfgs):
+    for i in own:
+        o, d, c = outs[i], done[i], cfgs[i]
         if d:  # the checks of a single run's resume: data, every config field named, config.json against the checkpoint
             _, _, meta = read_meta(o)
             check_same_data(o, meta, data_sha, dataset_path)
@@ -368,25 +392,79 @@ def _train_seeds(method, cfgs, data, outs, keys, dataset_path, progress, log, cu
                 saver.close()
     if all(d and max(d) >= cfg.steps for d in done):
         log(f'{method.name}: {n} seed(s) complete at step {cfg.steps}, not trained again')
-        return [load(o, log=log) for o in outs]
+        return [load(outs[i], log=log) for i in own]
     learner = method.make(cfg, obs_size, action_size)
-    states = [learner.init(k) for k in keys]
-    _check_room(outs, states[0], cfg, 0)  # (the complete case returned above) before anything is written
-    savers = [ckpt.Checkpointer(o, keep=cfg.keep) for o in outs]
-    start, states = _restore_common(savers, states, done, log)
-    if start:
-        log(f'{method.name}: resuming {n} seed(s) at step {start}')
+    states = [learner.init(keys[i]) for i in own]
+    _check_room([outs[i] for i in own], states[0], cfg, 0)  # (the complete case returned above) before any write
     metas = [meta_of(method.name, c, obs_size, action_size, dataset_path, data_sha) for c in cfgs]
-    for o, m in zip(outs, metas):
-        files.write_json(os.path.join(o, 'config.json'), m, makedirs=True)
-        trim_metrics(os.path.join(o, 'metrics.jsonl'), start)
-    state = jax.tree.map(lambda *x: jnp.stack(x), *states)
-    chunk = jax.jit(seeds_chunk(learner.update, cfg.updates_per_call), donate_argnums=0)
-    state, step = _host_loop(chunk, state, ds, cfg, start, outs, savers, metas, [set(d) for d in done], n,
-                             f'train {method.name} {cfg.preset} x{n} seeds', progress, method.progress,
-                             _curve_points(curve, method, cfgs, learner, metas), curve)
-    return [Trained(method.name, c, learner, jax.tree.map(lambda x, i=i: x[i], state), step, meta)
-            for i, (c, meta) in enumerate(zip(cfgs, metas))]
+    if spread:
+        savers = [ckpt.Checkpointer(o, keep=cfg.keep) for o in outs] if jax.process_index() == 0 else []
+        start, states = _restore_spread(outs, states, done, own, log)
+    else:
+        savers = [ckpt.Checkpointer(o, keep=cfg.keep) for o in outs]
+        start, states = _restore_common(savers, states, done, log)
+    try:
+        if start:
+            log(f'{method.name}: resuming {len(own)} seed(s) at step {start}')
+        for i in own:
+            files.write_json(os.path.join(outs[i], 'config.json'), metas[i], makedirs=True)
+            trim_metrics(os.path.join(outs[i], 'metrics.jsonl'), start)
+        state = jax.tree.map(lambda *x: jnp.stack(x), *states)
+        chunk = jax.jit(seeds_chunk(learner.update, cfg.updates_per_call), donate_argnums=0)
+        skip = [set(d) for d in done]
+        pick = lambda x, i: x[i]  # noqa: E731
+        save = _gathered_saving(savers, metas, skip, len(own), n) if spread else _saving(savers, metas, skip, pick)
+        mine = [cfgs[i] for i in own]
+        state, step = _host_loop(chunk, state, ds, cfg, start, [outs[i] for i in own], save, len(own),
+                                 f'train {method.name} {cfg.preset} x{len(own)} seeds', progress, method.progress,
+                                 _curve_points(curve, method, mine, learner, [metas[i] for i in own]), curve)
+    finally:
+        for saver in savers:
+            saver.close()
+    return [Trained(method.name, cfgs[i], learner, jax.tree.map(lambda x, j=j: x[j], state), step, metas[i])
+            for j, i in enumerate(own)]
+
+
+def _restore_spread(outs: list[str], templates: list, done: list[list[int]], own: list[int], log) -> tuple[int, list]:
+    """Several processes: ``own``'s states at the newest step that every folder holds (the same on every
+    process, so that they save in step); ``(0, templates)`` when there is none."""
+    common = sorted(set.intersection(*map(set, done)) if all(done) else set())
+    if not common:
+        return 0, templates
+    states = []
+    for i, template in zip(own, templates):
+        reader = ckpt.Checkpointer(outs[i], keep=None, create=False)
+        try:
+            states.append(reader.restore(template, step=common[-1], log=log)[1])
+        finally:
+            reader.close()
+    return common[-1], states
+
+
+def _gathered_saving(savers: list, metas: list[dict], skip: list[set], mine: int, n: int) -> Callable:
+    """``save(step, state)`` of several processes, each holding ``mine`` seeds stacked (process ``p``
+    seeds ``p, p + N, ...``): every process sends its states to every other (``process_allgather``,
+    each share padded to the largest), and process 0, holding ``savers`` of all ``n`` folders, writes
+    them."""
+    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
+
+    count, most = jax.process_count(), -(-n // jax.process_count())
+
+    def save(step, state):
+        local = jax.device_get(state)
+        if mine < most:  # the same shapes on every process: repeat the first seed
+            local = jax.tree.map(lambda x: np.concatenate([x] + [x[:1]] * (most - mine)), local)
+        try:
+            got = multihost_utils.process_allgather(local)  # [processes, most, ...] on every process
+        except Exception as e:  # pylint: disable=broad-except  (a partner ended: XLA's and gloo's long status text)
+            raise RuntimeError(f'process {jax.process_index()} of {count} could not gather checkpoint {step} from '
+                               f'the others ({" ".join(str(e).split())[:300]}); run the same command again on every '
+                               'process to resume') from None
+        for i, (saver, done) in enumerate(zip(savers, skip)):
+            if step not in done:
+                saver.save(step, jax.tree.map(lambda x, i=i: x[i % count, i // count], got), metas[i])
+
+    return save
 
 
 def _restore_common(savers: list, templates: list, done: list[list[int]], log) -> tuple[int, list]:
