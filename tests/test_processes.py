@@ -176,3 +176,14 @@ def test_compare_over_two_processes_equals_one_process_and_resumes_after_a_kill(
                 np.testing.assert_array_equal(ea[k], eb[k], err_msg=f'{m} seed {s} {k}')
     ra, rb = (json.load(open(os.path.join(f, 'results.json'))) for f in (one, two))
     assert ra['rows'] == rb['rows'] and ra['data_sha256'] == rb['data_sha256']
+
+
+def test_one_process_may_name_the_host_backend(tmp_path, capsys):
+    """`--backend ogbench` is refused with several processes only: one process goes on to the checkpoint
+    (here a missing one, named)."""
+    from aqm_mjx.cli import main  # pylint: disable=import-outside-toplevel
+
+    missing = str(tmp_path / 'nowhere')
+    assert main(['evaluate', '--checkpoint', missing, '--preset', 'ci', '--backend', 'ogbench']) == 2
+    err = capsys.readouterr().err
+    assert 'several processes' not in err and 'nowhere' in err, err

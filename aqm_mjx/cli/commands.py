@@ -339,7 +339,7 @@ def cmd_evaluate(a):
     if host:
         overrides += host
         print("evaluation in OGBench's environments on the host (no accelerator; --backend mjx for MJX)")
-    elif any(o.replace(' ', '').split('.')[-1] == 'backend=ogbench' for o in overrides):
+    elif n_processes > 1 and any(o.replace(' ', '').split('.')[-1] == 'backend=ogbench' for o in overrides):
         raise ValueError("several processes evaluate in MJX, the episodes sharded over every process's devices; "
                          "drop --backend ogbench (OGBench's environments step on one host)")
     out = evaluation_out(a.checkpoint, a.out)

@@ -4,6 +4,12 @@ episode's outcome (``episodes.npz``) and the table (``results.json``) are the sa
 
     python benchmarks/throughput/bench_processes.py                                  # the shipped checkpoint
     python benchmarks/throughput/bench_processes.py --episodes 1 --horizon 30       # a quick look
+    python benchmarks/throughput/bench_processes.py --compare --steps 2000          # compare --seeds 2, gcbc and gcivl
+
+With ``--compare``: ``aqm-mjx compare --methods gcbc gcivl --seeds 2 --preset ci`` on antmaze-medium
+(``--dataset``, or random antmaze-shaped data: 29-d observations, 8-d actions), one process against
+two (seed i trained on process i): wall time of each and whether every final training state is the
+same bit for bit, every episode and the table.
 
 Both runs evaluate in MJX (``--backend mjx``; several processes shard the episodes over every
 process's devices, which OGBench's host-stepped environments cannot), each with an empty compilation
@@ -43,12 +49,21 @@ def main():
     p.add_argument('--per-device-envs', type=int, default=0,
                    help='environments per device in both runs (one process: --envs N, two: --envs 2N), so that '
                         'each device runs the same program shape; 0: one chunk of every episode in both')
+    p.add_argument('--compare', action='store_true', help='time `aqm-mjx compare --seeds 2` instead')
+    p.add_argument('--steps', type=int, default=2000, help='--compare: training updates per seed')
+    p.add_argument('--dataset', default=None, help='--compare: an antmaze-medium .npz (default: random data)')
     p.add_argument('--out', default=None, help='JSON file for the rows')
     a = p.parse_args()
     work = tempfile.mkdtemp(prefix='bench-processes-')
-    argv = [sys.executable, '-m', 'aqm_mjx.cli', 'evaluate', '--checkpoint', a.checkpoint, '--backend', 'mjx',
-            '--shift', a.shift, '--episodes', str(a.episodes), '--horizon', str(a.horizon), '--ablations',
-            'no-pruning', '--calibrate', 'none']
+    if a.compare:
+        argv = [sys.executable, '-m', 'aqm_mjx.cli', 'compare', '--env', 'antmaze-medium', '--methods', 'gcbc',
+                'gcivl', '--seeds', '2', '--preset', 'ci', '--dataset', a.dataset or _random_data(work),
+                '--set', f'train.steps={a.steps}', '--set', f'protocol.episodes={a.episodes}',
+                '--set', f'protocol.horizon={a.horizon}']
+    else:
+        argv = [sys.executable, '-m', 'aqm_mjx.cli', 'evaluate', '--checkpoint', a.checkpoint, '--backend', 'mjx',
+                '--shift', a.shift, '--episodes', str(a.episodes), '--horizon', str(a.horizon), '--ablations',
+                'no-pruning', '--calibrate', 'none']
     env = dict(os.environ, JAX_PLATFORMS='cpu', XLA_FLAGS='')
     rows, outs = [], {}
     for n in (1, 2):
@@ -67,6 +82,10 @@ def main():
         wall = time.perf_counter() - t0
         if any(pr.returncode for pr in procs):
             raise SystemExit(f'{n} process(es) failed:\n' + '\n'.join(e[-2000:] for _, e in done))
+        if a.compare:
+            rows.append(dict(row=f'{n} process{"es" * (n > 1)}', processes=n, wall_s=round(wall, 1)))
+            print(rows[-1], flush=True)
+            continue
         res = json.load(open(os.path.join(out, 'results.json')))
         rows.append(dict(row=f'{n} process{"es" * (n > 1)}', processes=n, devices=res['device_count'],
                          envs_per_device=res['timing']['envs_per_chunk'] // res['device_count'],
@@ -74,6 +93,12 @@ def main():
                          wall_s=round(wall, 1), chunks=res['timing']['chunks'],
                          evaluate_s=round(res['timing']['total_s'], 1)))
         print(rows[-1], flush=True)
+    if a.compare:
+        rows.append(dict(row='two against one', **_same_comparison(outs[1], outs[2]),
+                         wall_ratio=round(rows[0]['wall_s'] / rows[1]['wall_s'], 2)))
+        print(rows[-1], flush=True)
+        finish(rows, a.out)
+        return
     a_eps, b_eps = (np.load(os.path.join(outs[n], 'episodes.npz')) for n in (1, 2))
     same = all(np.array_equal(a_eps[k], b_eps[k]) for k in a_eps.files)
     ra, rb = (json.load(open(os.path.join(outs[n], 'results.json'))) for n in (1, 2))
@@ -82,6 +107,40 @@ def main():
                      wall_ratio=round(rows[0]['wall_s'] / rows[1]['wall_s'], 2)))
     print(rows[-1], flush=True)
     finish(rows, a.out)
+
+
+def _random_data(work: str) -> str:
+    """5,000 random antmaze-shaped states in 50 trajectories (the shapes, not a skill)."""
+    rng = np.random.default_rng(0)
+    terminals = np.zeros(5000, bool)
+    terminals[99::100] = True
+    path = os.path.join(work, 'antmaze-medium-navigate.npz')
+    np.savez(path, observations=rng.normal(size=(5000, 29)).astype(np.float32),
+             actions=rng.uniform(-1, 1, (5000, 8)).astype(np.float32), terminals=terminals)
+    return path
+
+
+def _same_comparison(one: str, two: str) -> dict:
+    """Whether two comparison folders hold the same final training states (every array, bit for bit),
+    the same episodes and the same table."""
+    import glob  # pylint: disable=import-outside-toplevel
+
+    import jax  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx.learn import fit  # pylint: disable=import-outside-toplevel
+
+    def leaves(f):
+        return [np.asarray(x) for x in jax.tree.leaves(fit.load(f, log=lambda *_: None).state)]
+
+    folders = sorted(os.path.relpath(f, one) for f in glob.glob(os.path.join(one, 'train', '*', 'seed_*')))
+    states = all(len(x) == len(y) and all(np.array_equal(u, v) for u, v in zip(x, y))
+                 for x, y in ((leaves(os.path.join(one, f)), leaves(os.path.join(two, f))) for f in folders))
+    episodes = all(all(np.array_equal(ea[k], eb[k]) for k in ea.files) for ea, eb in (
+        (np.load(e), np.load(e.replace(one, two, 1)))
+        for e in glob.glob(os.path.join(one, 'eval', '*', '*', 'episodes.npz'))))
+    ra, rb = (json.load(open(os.path.join(f, 'results.json'))) for f in (one, two))
+    return dict(run_folders=len(folders), final_states_identical=bool(states), episodes_identical=bool(episodes),
+                table_identical=ra['rows'] == rb['rows'])
 
 
 if __name__ == '__main__':
