@@ -168,6 +168,7 @@ class Checkpointer:
         if not candidates:
             raise CheckpointError(f'no checkpoint in {os.path.join(self.directory, "checkpoints")}')
         errors = []
+        _quiet_restore_leftovers()  # before a failure's callbacks can report
         host = jax.tree.map(lambda x: np.zeros(np.shape(x), jnp.result_type(x)), template)
         for s in candidates:
             try:
@@ -219,6 +220,32 @@ def one_line(err: BaseException, limit: int = 200) -> str:
     """``Type: first line of the message`` (Orbax and TensorStore errors run over many lines)."""
     text = str(err).strip().splitlines()
     return f'{type(err).__name__}: {text[0][:limit] if text else ""}'
+
+
+def _quiet_restore_leftovers() -> None:
+    """Keep what a failed restore leaves behind off the terminal from now on (every restore calls this
+    first): TensorStore callbacks that, from their own threads and after Orbax closed its event loop,
+    report ``RuntimeError: Event loop is closed`` as unraisable (ten lines a callback, interleaved),
+    and the ``asyncio`` logger's "Task exception was never retrieved" for Orbax's abandoned reads (this
+    package runs no event loop of its own). Every other report reaches the hooks as before."""
+    logging.getLogger('asyncio').setLevel(logging.CRITICAL + 1)
+    if getattr(sys.unraisablehook, 'drops_closed_loop', False):
+        return
+    before_unraisable, before_except = sys.unraisablehook, sys.excepthook
+
+    def closed_loop(value) -> bool:
+        return isinstance(value, RuntimeError) and str(value) == 'Event loop is closed'
+
+    def unraisable(u):
+        if not closed_loop(u.exc_value):
+            before_unraisable(u)
+
+    def excepthook(kind, value, tb):
+        if not closed_loop(value):
+            before_except(kind, value, tb)
+
+    unraisable.drops_closed_loop = True
+    sys.unraisablehook, sys.excepthook = unraisable, excepthook
 
 
 def _silence_leftovers() -> None:

@@ -13,6 +13,7 @@ import os
 from typing import Any, NamedTuple, Optional
 
 import jax
+import numpy as np
 
 from aqm_mjx import files
 from aqm_mjx.data import dataset as ds_io
@@ -51,8 +52,13 @@ def meta_of(method: str, cfg, obs_size: int, action_size: int, dataset_path: Opt
 
 
 def fingerprint(data: dict) -> str:
-    """The training arrays' fingerprint (:func:`aqm_mjx.data.dataset.fingerprint`) that config.json records."""
-    return ds_io.fingerprint({k: data[k] for k in ('observations', 'actions', 'terminals') if k in data})
+    """The training arrays' fingerprint (:func:`aqm_mjx.data.dataset.fingerprint`) that config.json records,
+    of the arrays as a file read back holds them (``terminals`` as bool, whatever a caller's dict held:
+    a run trained from a dict resumes with the file written from it)."""
+    arrays = {k: data[k] for k in ('observations', 'actions', 'terminals') if k in data}
+    if 'terminals' in arrays:
+        arrays['terminals'] = np.asarray(arrays['terminals']).astype(bool)
+    return ds_io.fingerprint(arrays)
 
 
 def check_same_data(out: str, saved: dict, data_sha256: str, dataset_path: Optional[str]) -> None:
