@@ -921,3 +921,22 @@ def test_a_run_trained_from_arrays_resumes_with_the_file_written_from_them(tmp_p
     fit.train('gcbc', cfg, data, out, dataset_path=path, progress=False, log=lambda *_: None)
     assert cli.main(['train', '--dataset', path, '--resume', '--steps', '200', '--out', out]) == 0
     assert fit.checkpoint_steps(out)[-1] == 200
+
+
+def test_one_program_refuses_bad_input_before_it_writes(tmp_path, grid_file, capsys):
+    """`run --one-program`: a damaged --dataset, --seeds 0 and an update that cannot fit in memory are
+    each one error line, and no run folder (no lock file) is left behind."""
+    damaged = str(tmp_path / 'pointmaze-medium-navigate.npz')
+    with open(grid_file, 'rb') as f:
+        open(damaged, 'wb').write(f.read()[:300])  # cut inside the zip
+    base = ['run', '--env', 'pointmaze-medium', '--preset', 'ci', '--one-program']
+    cases = [(['--dataset', damaged], 'pointmaze-medium-navigate.npz'),
+             (['--dataset', grid_file, '--seeds', '0'], '--seeds must be an integer >= 1'),
+             (['--dataset', grid_file, '--seeds', '2', '--set', 'n_components=50000000'], 'n_components')]
+    for k, (extra, says) in enumerate(cases):
+        out = str(tmp_path / f'out{k}')
+        capsys.readouterr()
+        assert cli.main(base + extra + ['--out', out]) == 2
+        lines = _error_lines(capsys.readouterr().err)
+        assert len(lines) == 1 and says in lines[0], (extra, lines)
+        assert not os.path.exists(out), extra

@@ -294,10 +294,18 @@ def cmd_run(a):
         return 0
     if a.shift != 'base':
         raise ValueError('--one-program evaluates the base layout; drop --shift')
+    from aqm_mjx import memory  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import methods  # pylint: disable=import-outside-toplevel
+
+    if isinstance(a.seeds, bool) or a.seeds < 1:
+        raise ValueError(f'--seeds must be an integer >= 1; got {a.seeds}')
+    env = envs.make(a.env)
+    memory.check_training(methods.get(cfg.method), cfg.train, env.obs_size, env.action_size, a.seeds)
+    given = assess.read_data(a.dataset, env) if a.dataset else None  # a damaged file is named before any write
     with files.run_lock(out):  # one writer per run folder
         path = run.data_stage(a.env, out, a.dataset, collect_episodes_of(a), a.collect_batch,
                               physics=collect_physics_of(a), physics_preset=cfg.protocol.physics_preset)
-        data = assess.read_data(path, envs.make(a.env))
+        data = given if given is not None else assess.read_data(path, env)
         res = run.run_one_program(cfg, data, a.seeds)
         files.write_json(os.path.join(out, 'one_program.json'), res, makedirs=True)
     print(f'wrote {out}/one_program.json')
