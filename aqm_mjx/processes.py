@@ -73,6 +73,9 @@ def start(coordinator: Optional[str] = None, num_processes: Optional[int] = None
         first = ' '.join(str(e).split())[:300]
         who = 'this process' if detect else f'process {process_id} of {num_processes}'
         raise RuntimeError(f'{who} could not join the run through {where} within {timeout_s} s ({first})') from None
+    # the collectives' own connections now, while every process is here: gloo gives up on a partner that
+    # comes more than 30 s after the first collective's other side (a process with no chunk to run)
+    barrier('start')
     return jax.process_index(), jax.process_count()
 
 

@@ -38,7 +38,7 @@ pid, n = processes.start(sys.argv[1], 2, int(sys.argv[2]), timeout_s=int(sys.arg
 import jax, numpy as np
 from aqm_mjx.evaluation.evaluate import device_mesh, fetch_global, put_global
 from jax.sharding import NamedSharding, PartitionSpec
-mesh = device_mesh()
+mesh = device_mesh(jax.devices())  # every process's devices
 x = put_global(np.arange(8.0), NamedSharding(mesh, PartitionSpec('env')))
 y = fetch_global(jax.jit(lambda a: 2 * a + a.sum())(x))
 print(pid, n, jax.device_count(), processes.writer(), y.tolist(), flush=True)
@@ -72,13 +72,13 @@ def test_a_process_whose_partner_never_comes_names_what_it_waited_for():
 @pytest.mark.slow
 def test_evaluate_over_two_processes_equals_one_process(tmp_path):
     """`aqm-mjx evaluate` of one checkpoint on the unchanged maze and a closure, as one process and as
-    two (the episodes sharded over both processes' devices): every episode's outcome is the same,
-    and process 0 alone writes."""
+    two (chunks of 10 episodes, each process running every other one on its own device): every
+    episode's outcome is the same, and process 0 alone writes."""
     from aqm_mjx import run  # pylint: disable=import-outside-toplevel
 
     ckpt, path = run.demo_run(str(tmp_path / 'demo'), steps=100)
     argv = ['evaluate', '--checkpoint', ckpt, '--dataset', path, '--preset', 'ci', '--shift', 'base,close-3-3',
-            '--episodes', '2', '--horizon', '40', '--ablations', 'no-pruning']
+            '--episodes', '2', '--horizon', '40', '--ablations', 'no-pruning', '--envs', '10']  # 4 chunks
     one = str(tmp_path / 'one')
     r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--out', one], env=ENV, capture_output=True,
                        text=True, timeout=900)

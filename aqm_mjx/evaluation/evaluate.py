@@ -5,11 +5,14 @@
 
 The episode table (:mod:`.protocol`) is cut into chunks of ``envs`` environments, one jitted call
 each, padded to a static size (a progress bar counts episodes). The environment axis is sharded
-over every device (``jax.sharding``, a 1-D mesh named ``env``; parameters and graph replicated);
-with several processes (:mod:`aqm_mjx.processes`) that is every device of every process. Episode keys
-depend on the episode alone, so the point maze's results do not depend on the chunk size or the
-number of devices (tested); the ant's contact physics, partitioned otherwise, rounds differently and
-its trajectories part (RESULTS.md section 7.7).
+over the process's devices (``jax.sharding``, a 1-D mesh named ``env``; parameters and graph
+replicated). With several processes (:mod:`aqm_mjx.processes`) process ``p`` runs chunks ``p, p + N,
+...`` on its own devices with the program one process runs, and the outcomes are gathered on every
+process: the same episodes as one process at the same chunk size, bit for bit, the ant's included (a
+mesh over every process's devices, given as ``mesh``, shards each chunk instead; the ant's contact
+physics, partitioned so, rounds differently and its trajectories part: RESULTS.md section 7.7).
+Episode keys depend on the episode alone, so the point maze's results do not depend on the chunk
+size or the number of devices (tested).
 """
 
 from __future__ import annotations
@@ -34,8 +37,10 @@ from aqm_mjx.progress import BAR_FORMAT, ChunkBar, Hook
 
 
 def device_mesh(devices=None) -> Mesh:
-    """A 1-D mesh named ``'env'`` over ``devices`` (all of them, on every host, by default)."""
-    devices = jax.devices() if devices is None else list(devices)
+    """A 1-D mesh named ``'env'`` over ``devices`` (by default this process's: every device when it runs
+    alone; with several processes, :func:`evaluate` runs each process's share of the chunks on its own
+    devices). ``device_mesh(jax.devices())`` spans every process's devices."""
+    devices = jax.local_devices() if devices is None else list(devices)
     return Mesh(np.array(devices), ('env',))
 
 
@@ -160,7 +165,10 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
         env, protocol, cfg.kappa, variants, plans=agent.plans, patience=cfg.patience, cut_slack=cfg.cut_slack,
         own_rule=agent.rule is not None)
     table = eps.table
+    # several processes: each runs every N-th chunk on its own devices, with the program one process runs,
+    # and the outcomes are gathered: the same episodes as one process at the same chunk size, bit for bit
     mesh = device_mesh() if mesh is None else mesh
+    spread = jax.process_count() > 1 and all(d.process_index == jax.process_index() for d in mesh.devices.flat)
     n_dev = mesh.devices.size
     envs = int(protocol.envs)
     if envs == 0 and protocol.backend == 'mjx':  # chosen from the memory estimate
@@ -182,17 +190,22 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     for r in range(n):
         first.setdefault((table.agent[r], table.variant[r], table.task[r]), r)
     keep = {r: k for k, r in first.items()}
+    count, me = (jax.process_count(), jax.process_index()) if spread else (1, 0)
+    mine = [c for c in range(n_chunks) if c % count == me]
+    fetch = (lambda x: np.asarray(jax.device_get(x))) if spread else fetch_global
+    kept = {}  # row -> its trace's arrays (gathered from every process when spread)
     traces, timing = {}, {'chunks': n_chunks, 'envs_per_chunk': chunk, 'devices': int(n_dev), 'steps': eps.steps}
     bar = None
     if progress:
         from tqdm.auto import tqdm  # pylint: disable=import-outside-toplevel
 
-        bar = tqdm(total=n, desc=f'{label} {env.name}', unit='ep', bar_format=BAR_FORMAT)
+        bar = tqdm(total=min(n, len(mine) * chunk) if spread else n, desc=f'{label} {env.name}', unit='ep',
+                   bar_format=BAR_FORMAT)
     ticks = ChunkBar(bar)
     HOOK.target = ticks
     t0 = time.perf_counter()
     try:
-        for c in range(n_chunks):
+        for c in mine:
             rows = np.arange(c * chunk, (c + 1) * chunk)
             real = rows < n
             rows = np.where(real, rows, 0)  # padding repeats row 0; its results are dropped
@@ -200,21 +213,28 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
             t_c = time.perf_counter()
             ticks.start(int(real.sum()), eps.steps)
             out = program(aux, graph, inputs)
-            success_c, pruned_c = fetch_global(out['success']) > 0, fetch_global(out['pruned'])
+            success_c, pruned_c = fetch(out['success']) > 0, fetch(out['pruned'])
             ticks.finish()
             timing.setdefault('first_chunk_s', time.perf_counter() - t_c)
             success[rows[real]] = success_c[real]
             pruned[rows[real]] = pruned_c[real]
-            removed[rows[real]] = fetch_global(out['removed'])[real]
-            legs[rows[real]], n_legs[rows[real]] = fetch_global(out['legs'])[real], fetch_global(out['n_legs'])[real]
+            removed[rows[real]] = fetch(out['removed'])[real]
+            legs[rows[real]], n_legs[rows[real]] = fetch(out['legs'])[real], fetch(out['n_legs'])[real]
             wanted = [(i, rows[i]) for i in np.flatnonzero(real) if rows[i] in keep]
             if wanted:
-                xy, node, cuts, goal = (fetch_global(out[k]) for k in ('xy', 'node', 'cuts', 'goal_xy'))
+                xy, node, cuts, goal = (fetch(out[k]) for k in ('xy', 'node', 'cuts', 'goal_xy'))
                 for i, r in wanted:
-                    a, v, t = keep[r]
-                    traces[(eps.specs[a][0], list(eps.variants)[v], int(t))] = dict(
-                        xy=xy[:, i], node=node[:, i], cuts=cuts[i][cuts[i, :, 0] >= 0], goal_xy=goal[i],
-                        success=bool(success_c[i]), pruned=int(pruned_c[i]))
+                    kept[r] = dict(xy=xy[:, i], node=node[:, i], cuts=cuts[i], goal_xy=goal[i])
+        if spread:
+            success, pruned, removed, legs, n_legs, kept = _gathered(
+                (success, pruned, removed, legs, n_legs), kept, sorted(keep), chunk,
+                jax.eval_shape(program, aux, graph, jax.tree.map(lambda x: put_global(x, shard), proto.table_inputs(
+                    eps, key, np.arange(chunk) % n, budgets))))
+        for r, tr in kept.items():
+            a, v, t = keep[r]
+            traces[(eps.specs[a][0], list(eps.variants)[v], int(t))] = dict(
+                xy=tr['xy'], node=tr['node'], cuts=tr['cuts'][tr['cuts'][:, 0] >= 0], goal_xy=tr['goal_xy'],
+                success=bool(success[r]), pruned=int(pruned[r]))
     finally:
         HOOK.target = None  # a later program (or a failed chunk) never drives this bar
         if owned and hasattr(program, 'close'):
@@ -234,6 +254,39 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     summary = proto.format_summary(rates, eps.agents, names, eps.task_ids, prunes)
     return Results(eps.agents, names, eps.task_ids, table, success, pruned, summary, traces, timing, legs, n_legs,
                    removed)
+
+
+def _gathered(rows: tuple, kept: dict, keep_rows: list, chunk: int, shapes) -> tuple:
+    """Several processes, each holding the outcomes of its chunks (row ``r`` ran on process
+    ``(r // chunk) mod N``): every per-episode array (``rows``, each ``[E, ...]``) and the kept traces
+    (``{row: {'xy', 'node', 'cuts', 'goal_xy'}}`` of ``keep_rows``) as if one process had run them all,
+    on every process. ``shapes``: the chunk program's output shapes and dtypes."""
+    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
+
+    count = jax.process_count()
+    n = len(rows[0])
+    owner = (np.arange(n) // chunk) % count
+
+    def pick(x, who, at):  # x [processes, len(at), ...] -> each row from its owner
+        return x[who, np.arange(len(at))]
+
+    sent = tuple(x.astype(np.uint8) if x.dtype == bool else x for x in rows)  # (bools travel as bytes)
+    got = multihost_utils.process_allgather(sent)
+    out = [pick(np.asarray(x), owner, np.arange(n)).astype(r.dtype) for x, r in zip(got, rows)]
+    if not keep_rows:
+        return (*out, {})
+    k = len(keep_rows)  # each trace as the program gives one episode's: xy [T, 2], node [T], cuts [C, 2], goal [2]
+    over_time = lambda name: shapes[name].shape[:1] + shapes[name].shape[2:]  # noqa: E731  ([T, B, ...] -> [T, ...])
+    one = dict(xy=over_time('xy'), node=over_time('node'), cuts=shapes['cuts'].shape[1:],
+               goal_xy=shapes['goal_xy'].shape[1:])
+    mine = {name: np.zeros((k,) + dims, shapes[name].dtype) for name, dims in one.items()}
+    for j, r in enumerate(keep_rows):
+        for name, arr in kept.get(r, {}).items():
+            mine[name][j] = arr
+    allk = multihost_utils.process_allgather(mine)
+    who = owner[np.asarray(keep_rows)]
+    traces = {name: pick(np.asarray(x), who, keep_rows) for name, x in allk.items()}
+    return (*out, {r: {name: traces[name][j] for name in traces} for j, r in enumerate(keep_rows)})
 
 
 def steps_per_s(timing: dict) -> float:

@@ -11,13 +11,11 @@ With ``--compare``: ``aqm-mjx compare --methods gcbc gcivl --seeds 2 --preset ci
 two (seed i trained on process i): wall time of each and whether every final training state is the
 same bit for bit, every episode and the table.
 
-Both runs evaluate in MJX (``--backend mjx``; several processes shard the episodes over every
-process's devices, which OGBench's host-stepped environments cannot), each with an empty compilation
-cache of its own. With ``--per-device-envs`` every device runs chunks of the same shape in both runs;
-without it one process runs every episode in one chunk and each of two processes half of it, and the
-ant's physics, vectorised over another batch, rounds differently (a chaotic system: trajectories
-part). On 2 cores the two processes share the cores that one process's XLA already uses,
-so the gain is small; the point is that the path is exact.
+Both runs evaluate in MJX (``--backend mjx``; OGBench's host-stepped environments run in one process),
+each with an empty compilation cache of its own, in chunks of ``--envs`` environments: two processes
+run every other chunk each, with the program one process runs, so every episode is the one-process
+run's bit for bit (the ant's included). On 2 cores the two processes share the cores that one
+process's XLA already uses, so the gain is small; the point is that the path is exact.
 """
 
 from __future__ import annotations
@@ -46,9 +44,8 @@ def main():
     p.add_argument('--shift', default='base,close-3-3')
     p.add_argument('--episodes', type=int, default=2)
     p.add_argument('--horizon', type=int, default=200)
-    p.add_argument('--per-device-envs', type=int, default=0,
-                   help='environments per device in both runs (one process: --envs N, two: --envs 2N), so that '
-                        'each device runs the same program shape; 0: one chunk of every episode in both')
+    p.add_argument('--envs', type=int, default=10, help='environments per chunk in both runs (at least two chunks '
+                                                         'give the second process work)')
     p.add_argument('--compare', action='store_true', help='time `aqm-mjx compare --seeds 2` instead')
     p.add_argument('--steps', type=int, default=2000, help='--compare: training updates per seed')
     p.add_argument('--dataset', default=None, help='--compare: an antmaze-medium .npz (default: random data)')
@@ -72,7 +69,7 @@ def main():
         with socket.socket() as s:
             s.bind(('127.0.0.1', 0))
             port = s.getsockname()[1]
-        envs = ['--envs', str(n * a.per_device_envs)] if a.per_device_envs else []
+        envs = [] if a.compare else ['--envs', str(a.envs)]
         extra = (lambda i: envs) if n == 1 else (lambda i: envs + ['--coordinator', f'127.0.0.1:{port}',
                                                                    '--num-processes', '2', '--process-id', str(i)])
         t0 = time.perf_counter()
@@ -88,7 +85,7 @@ def main():
             continue
         res = json.load(open(os.path.join(out, 'results.json')))
         rows.append(dict(row=f'{n} process{"es" * (n > 1)}', processes=n, devices=res['device_count'],
-                         envs_per_device=res['timing']['envs_per_chunk'] // res['device_count'],
+                         envs_per_chunk=res['timing']['envs_per_chunk'],
                          episodes=int(len(np.load(os.path.join(out, 'episodes.npz'))['success'])),
                          wall_s=round(wall, 1), chunks=res['timing']['chunks'],
                          evaluate_s=round(res['timing']['total_s'], 1)))
