@@ -468,9 +468,8 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
     if seeds < jax.process_count():
         raise ValueError(f'--seeds {seeds} over {jax.process_count()} processes: every process trains at least one '
                          'seed; give more seeds or fewer processes')
-    if several and any(c.protocol.backend == 'ogbench' for c in cfgs.values()):
-        raise ValueError("several processes evaluate in MJX, the episodes sharded over every process's devices; "
-                         "drop --backend ogbench (OGBench's environments step on one host)")
+    for c in cfgs.values():
+        processes.check_backend(c.protocol.backend)
     seed_ids = [first_seed + i for i in range(seeds)]
     spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
     given = assess.read_data(dataset, env) if dataset else None  # a damaged file is named before anything is written
@@ -481,14 +480,16 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         processes.barrier('compare: request checked')  # every process read compare.json before it changes
         cpath = os.path.join(out, 'compare.json')
         kept = {} if recorded is None else dict(data_sha256=recorded)
+        def data_stage():
+            return run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
+                                  physics=collect_physics, physics_preset=collect_preset)
+
         if writer:
             files.write_json(cpath, dict(spec, methods=all_names, **kept), makedirs=True)
-            path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
-                                  physics=collect_physics, physics_preset=collect_preset)
+            path = data_stage()
         processes.barrier('compare: data written')
         if not writer:  # process 0 collected it: found, not collected again
-            path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
-                                  physics=collect_physics, physics_preset=collect_preset)
+            path = data_stage()
         data = given if given is not None else assess.read_data(path, env)
         digest = ds_io.fingerprint(data)
         if recorded is not None and recorded != digest:
@@ -504,7 +505,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
             'ends')
         if several:  # (fit.train_seeds splits them: seed i on process i mod N)
             log(f'process {jax.process_index()} of {jax.process_count()} trains seed(s) '
-                f'{[s for i, s in enumerate(seed_ids) if i % jax.process_count() == jax.process_index()]}; the '
+                f'{[seed_ids[i] for i in processes.share(seeds)]}; the '
                 'learning curve is not drawn across processes')
         per_method, result = {}, None
         for i, (n, c) in enumerate(cfgs.items()):

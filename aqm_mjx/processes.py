@@ -127,3 +127,20 @@ def barrier(name: str) -> None:
                            f'{name!r}, and one of them ended ({first}); run the same command again on every '
                            'process to resume') from None
 
+
+
+def share(n: int) -> list[int]:
+    """This process's items of ``n`` split over the processes, item ``i`` to process ``i mod count``
+    (every item with one process alone: all of them)."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    return [i for i in range(n) if i % jax.process_count() == jax.process_index()]
+
+
+def check_backend(backend: str) -> None:
+    """Refuse OGBench's host-stepped environments (``backend='ogbench'``) when several processes run."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    if backend == 'ogbench' and jax.process_count() > 1:
+        raise ValueError("several processes evaluate in MJX, each running its share of the episodes on its own "
+                         "devices; drop --backend ogbench (OGBench's environments step on one host)")

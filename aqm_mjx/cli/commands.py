@@ -347,9 +347,10 @@ def cmd_evaluate(a):
     if host:
         overrides += host
         print("evaluation in OGBench's environments on the host (no accelerator; --backend mjx for MJX)")
-    elif n_processes > 1 and any(o.replace(' ', '').split('.')[-1] == 'backend=ogbench' for o in overrides):
-        raise ValueError("several processes evaluate in MJX, the episodes sharded over every process's devices; "
-                         "drop --backend ogbench (OGBench's environments step on one host)")
+    elif any(o.replace(' ', '').split('.')[-1] == 'backend=ogbench' for o in overrides):
+        from aqm_mjx import processes  # pylint: disable=import-outside-toplevel
+
+        processes.check_backend('ogbench')
     out = evaluation_out(a.checkpoint, a.out)
     if len(a.checkpoint) == 1:
         assess.evaluate_checkpoint(a.checkpoint[0], cfg, dataset=a.dataset, shift=a.shift, out=out, seed=a.seed,

@@ -27,6 +27,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from aqm_mjx import envs as envs_lib
+from aqm_mjx import processes
 from aqm_mjx.agent.rollout import make_host_rollout, make_rollout
 from aqm_mjx.agent.rules import LEG_FIELDS, MAX_LEGS, AgentConfig
 from aqm_mjx.evaluation import calibration
@@ -190,8 +191,7 @@ def evaluate(env, agent: Agent, graph: Graph, cfg: AgentConfig, protocol: proto.
     for r in range(n):
         first.setdefault((table.agent[r], table.variant[r], table.task[r]), r)
     keep = {r: k for k, r in first.items()}
-    count, me = (jax.process_count(), jax.process_index()) if spread else (1, 0)
-    mine = [c for c in range(n_chunks) if c % count == me]
+    mine = processes.share(n_chunks) if spread else range(n_chunks)
     fetch = (lambda x: np.asarray(jax.device_get(x))) if spread else fetch_global
     kept = {}  # row -> its trace's arrays (gathered from every process when spread)
     traces, timing = {}, {'chunks': n_chunks, 'envs_per_chunk': chunk, 'devices': int(n_dev), 'steps': eps.steps}

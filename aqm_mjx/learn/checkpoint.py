@@ -114,8 +114,8 @@ class Checkpointer:
         """Write checkpoint ``step`` and wait until it is complete on disk. A failed write (disk
         full, read-only) leaves no temporary folder behind and raises :class:`CheckpointError`
         with one line saying why; the checkpoints already there are untouched."""
-        config = dict(config, **{DIGEST_KEY: state_digest(state)})
         state = jax.device_get(state)  # host arrays: what one process of several may save alone
+        config = dict(config, **{DIGEST_KEY: state_digest(state)})
         try:
             with quiet():
                 self._mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(state),

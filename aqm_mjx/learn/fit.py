@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import files
+from aqm_mjx import files, processes
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.learn import checkpoint as ckpt
 from aqm_mjx.learn import methods
@@ -365,7 +365,7 @@ def train_seeds(method: Union[str, methods.Method], cfgs: list, data: dict, outs
     if count > n:
         raise ValueError(f'{n} seed(s) over {count} processes: every process trains at least one; give --seeds '
                          f'{count} or more, or fewer processes')
-    own = [i for i in range(n) if i % count == jax.process_index()]  # this process's share
+    own = processes.share(n)  # this process's seeds
     with contextlib.ExitStack() as stack:
         for i in own:
             stack.enter_context(files.run_lock(outs[i]))  # one writer per run folder
