@@ -22,13 +22,15 @@ import jax
 import numpy as np
 
 from aqm_mjx import envs, files, presets, processes
+from aqm_mjx.agent import planners
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation import plots, report
 from aqm_mjx.evaluation.evaluate import calibrate_then_evaluate, device_mesh, evaluate, make_program
 from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit, methods
-from aqm_mjx.mapping.build import candidate_rows, method_map
+from aqm_mjx.interface import Agent
+from aqm_mjx.mapping.build import CHECK_OFFSET, candidate_rows, distance_check, method_map
 from aqm_mjx.pipeline import RunConfig, stage_keys
 
 
@@ -70,6 +72,24 @@ def preset_for(trained: fit.Trained) -> str:
 # about 0.1 MiB; 20x that): a disk too full for them is refused up front, not after every episode ran
 EVAL_OUTPUT_BYTES = 2 * 2 ** 20
 
+def agent_for(trained: fit.Trained, agent_cfg) -> Agent:
+    """The agent ``trained`` is evaluated as: its own, or with the planner ``agent_cfg.planner`` around it
+    (:func:`aqm_mjx.agent.planners.around`: ``flat``, ``aqm`` or ``ttgs`` on the method's distance)."""
+    return planners.around(trained.agent, trained.learner.distance, agent_cfg.planner, trained.method,
+                           ttgs=agent_cfg.ttgs)
+
+
+def checked_distance(agent: Agent, trained: fit.Trained, data: dict, agent_cfg, key, log=print) -> None:
+    """Before a map of planner ``aqm`` or ``ttgs`` is built on a method's distance: the check of
+    :func:`aqm_mjx.mapping.build.distance_check` (unless ``agent_cfg.distance_check`` is off), its
+    medians logged in one line."""
+    if agent_cfg.planner not in ('aqm', 'ttgs') or not agent_cfg.distance_check:
+        return
+    c = distance_check(agent, data['observations'], data['terminals'], key, name=trained.method)
+    log(f'{trained.method}\'s distance along the data: median {c["d1"]:.3g} steps over 1 step, {c["d25"]:.3g} over '
+        f'{CHECK_OFFSET} (d(s, s) {c["d0"]:.3g}): planner {agent_cfg.planner} on it')
+
+
 def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig, variants: dict):
     """The compiled evaluation chunk for ``trained`` from ``programs`` (filled on first use), shared by
     checkpoints whose method and configs agree up to the seed, and by the calibration pass and the
@@ -83,9 +103,10 @@ def _program(programs: Optional[dict], trained: fit.Trained, env, cfg: RunConfig
     sig = json.dumps([trained.method, dataclasses.replace(trained.config, seed=0).to_dict(), run_cfg['map'],
                       agent_cfg, chunk], sort_keys=True)
     if sig not in programs:
-        steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=trained.agent.plans,
-                              patience=cfg.agent.patience, own_rule=trained.agent.rule is not None).steps
-        programs[sig] = make_program(env, trained.agent, cfg.agent, steps, device_mesh(), cfg.protocol.backend,
+        agent = agent_for(trained, cfg.agent)
+        steps = plan_episodes(env, cfg.protocol, cfg.agent.kappa, variants, plans=agent.plans,
+                              patience=cfg.agent.patience, own_rule=agent.rule is not None).steps
+        programs[sig] = make_program(env, agent, cfg.agent, steps, device_mesh(), cfg.protocol.backend,
                                      cfg.protocol.workers, cfg.protocol.physics_preset)
     return programs[sig]
 
@@ -99,12 +120,14 @@ def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, vari
     row's budget first (:func:`~aqm_mjx.evaluation.evaluate.calibrate_then_evaluate`; recorded as
     ``calibration`` in ``results.json``). ``programs``: a dict that keeps compiled evaluation
     chunks across calls (several seeds of a method). Returns ``(Results, report dict)``."""
-    agent = trained.agent
+    agent = agent_for(trained, cfg.agent)
+    checked_distance(agent, trained, data, cfg.agent, k_map, log)
     if agent.plans:
         graph, m = method_map(agent, data, cfg.map, k_map)
     else:  # a flat method: no quasimetric, no map
         graph, m = None, dict(keypoints=0, overflow=False, seconds=0.0)
-        log(f'{trained.method} has no quasimetric: no map, its controller is evaluated flat')
+        log(f'{trained.method} runs flat: no map, its controller aimed at the goal'
+            + ('' if cfg.agent.planner == 'flat' else ' (it has no quasimetric)'))
     if m['overflow'] and agent.mapper is not None:
         log(f'warning: {trained.method} needed more map nodes than its max_nodes; some states joined their nearest')
     elif m['overflow']:
@@ -193,7 +216,7 @@ def learning_curve(env, data: dict, cfg: RunConfig, key: jax.Array, label: str =
 
     def point(trained: fit.Trained) -> dict:
         t0 = time.perf_counter()
-        agent = trained.agent
+        agent = agent_for(trained, agent_cfg)
         graph = method_map(agent, data, cfg.map, k_map, static=True)[0] if agent.plans else None
         if trained.method not in programs:  # seeds and checkpoints share one compiled chunk
             steps = plan_episodes(env, protocol, agent_cfg.kappa, variants, plans=agent.plans,

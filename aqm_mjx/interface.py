@@ -56,6 +56,20 @@ class Agent(NamedTuple):
         return self._replace(aux=aux)
 
 
+class Distance(NamedTuple):
+    """A method's goal-conditioned value read as a time-to-reach in control steps, the distance a
+    planner (:mod:`aqm_mjx.agent.planners`) maps and plans with.
+
+    ``encode(aux, obs [D]) -> z [L]``; ``dist(aux, z [L], z' [L]) -> scalar`` steps, >= 0. A method
+    whose value is not factored (GCIVL's V(s, g)) encodes a state as itself (``z = obs``).
+    ``about`` says how the steps are read from the method's value (docs and ``aqm-mjx methods``).
+    """
+
+    encode: Callable
+    dist: Callable
+    about: str = ''
+
+
 class Decide(NamedTuple):
     """The agent's side of a control step, apart from the physics, so that a host-stepped backend
     (:func:`aqm_mjx.agent.rollout.make_host_rollout` over :mod:`aqm_mjx.envs.ogbench_env`) runs the same

@@ -226,8 +226,8 @@ def test_no_import_circles_and_the_rollout_finds_rules_in_the_planner_registry()
     for m in sorted(graph):
         visit(m)
     assert not [c for c in circles if any(x.startswith('aqm_mjx.agent') for x in c)], circles
-    for rule in ('gas_rule', 'hilp_rule', 'planners'):
+    for rule in ('gas_rule', 'hilp_rule', 'ttgs_rule', 'planners'):
         assert 'aqm_mjx.agent.rollout' not in graph[f'aqm_mjx.agent.{rule}'], rule
-    assert planners.names() == ['gas', 'hilp']
-    with pytest.raises(ValueError, match="unknown test-time rule 'ttgs'; registered: gas, hilp"):
-        planners.get('ttgs')
+    assert planners.names() == ['gas', 'hilp', 'ttgs']
+    with pytest.raises(ValueError, match="unknown test-time rule 'astar'; registered: gas, hilp, ttgs"):
+        planners.get('astar')

@@ -92,6 +92,16 @@ class AgentConfig:
                               'only way left)')
     replan_slots: int = option(0, 'pruning environments replanned per Floyd-Warshall pass (speed only); '
                                '0: 8 on a CPU, 256 elsewhere')
+    planner: str = option('own', "the planner around the method (aqm_mjx.agent.planners): 'own' (as it comes), "
+                          "'flat' (no map), 'aqm' (AQM's map, budgets and pruning on the method's distance), 'ttgs' "
+                          '(a TTGS-style search on it)', ('own', 'flat', 'aqm', 'ttgs'))
+    distance_check: bool = option(True, "with planner aqm or ttgs: check the method's distance along the data's "
+                                  'trajectories before a map is built (aqm_mjx.mapping.build.distance_check)')
+    ttgs_nodes: int = option(4000, 'ttgs: random dataset states as nodes (TTGS: 4,000)')
+    ttgs_tau: float = option(24.0, 'ttgs: edges past tau steps are penalised (TTGS: 24 medium and large, 12 giant)')
+    ttgs_horizon: float = option(48.0, 'ttgs: T, the subgoal is the farthest path point within T steps (TTGS: 48 '
+                                 'medium and large, 24 giant)')
+    ttgs_window: int = option(32, 'ttgs: path points searched for the closest one each step (TTGS: the whole path)')
 
     def __post_init__(self):
         cfg_lib.check_types(self)
@@ -109,6 +119,16 @@ class AgentConfig:
                              f'got {self.cut_slack}')
         if isinstance(self.replan_slots, bool) or not isinstance(self.replan_slots, int) or self.replan_slots < 0:
             raise ValueError(f'AgentConfig.replan_slots must be an integer >= 0 (0: by device); got {self.replan_slots}')
+        cfg_lib.check_choice('AgentConfig', 'planner', self.planner, ('own', 'flat', 'aqm', 'ttgs'))
+        cfg_lib.check_positive_int(self, 'ttgs_nodes', 'ttgs_window')
+        for name in ('ttgs_tau', 'ttgs_horizon'):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f'AgentConfig.{name} must be a finite number > 0; got {getattr(self, name)}')
+
+    @property
+    def ttgs(self) -> dict:
+        """The TTGS planner's settings (:func:`aqm_mjx.agent.planners.around`)."""
+        return dict(nodes=self.ttgs_nodes, tau=self.ttgs_tau, horizon=self.ttgs_horizon, window=self.ttgs_window)
 
     @property
     def slots(self) -> int:

@@ -25,7 +25,7 @@ from aqm_mjx import presets
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import goals
 from aqm_mjx.envs import parse_name
-from aqm_mjx.interface import Agent
+from aqm_mjx.interface import Agent, Distance
 from aqm_mjx.learn import objectives, policy
 from aqm_mjx.learn.learner import Learner, LoopConfig, Method, option
 from aqm_mjx.learn.losses import lambda_loss, qrl_loss
@@ -246,7 +246,8 @@ def make(cfg: AQMConfig, obs_size: int, action_size: int) -> Learner:
         return Agent(encode, dist, controller, aux)
 
     return Learner(config=cfg, init=init, update=update, params=params, agent=agent,
-                   modules={'quasimetric': iqe, 'policy': pi})
+                   modules={'quasimetric': iqe, 'policy': pi},
+                   distance=Distance(encode, dist, 'its IQE quasimetric, in steps'))
 
 
 EXPLORE = {'explore': {'policy_goals': 'random'}}  # paper App. 10.3: uniform random goals on explore data

@@ -15,6 +15,7 @@ from typing import Any, Callable, NamedTuple, Optional
 from aqm_mjx import config as cfg_lib
 from aqm_mjx import presets
 from aqm_mjx.envs import parse_name
+from aqm_mjx.interface import Distance
 
 option = cfg_lib.option
 # the training bar's metrics of a method that names none: the baselines' losses ({metric: short name})
@@ -36,6 +37,9 @@ class Learner(NamedTuple):
             (the baselines; tests and the parity benchmark evaluate it on a batch of their own).
         step: ``(state, batch, key) -> (state, metrics)``, one update on a given batch, which
             ``update`` runs on the batch it samples (the baselines; the parity benchmark).
+        distance: the method's value as a time-to-reach in control steps
+            (:class:`~aqm_mjx.interface.Distance`, :mod:`aqm_mjx.learn.distance`), which the planners
+            around any method map and plan with (``evaluate --planner aqm|ttgs``); None: no value (GCBC).
     """
 
     config: Any
@@ -46,6 +50,7 @@ class Learner(NamedTuple):
     modules: dict
     loss: Optional[Callable] = None
     step: Optional[Callable] = None
+    distance: Optional[Distance] = None
 
 
 @dataclasses.dataclass(frozen=True)

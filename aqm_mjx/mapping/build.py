@@ -21,7 +21,7 @@ from aqm_mjx import presets
 from aqm_mjx.config import option
 from aqm_mjx.data.dataset import trajectory_ends
 from aqm_mjx.interface import Agent
-from aqm_mjx.mapping import gas_nodes, states
+from aqm_mjx.mapping import gas_nodes, states, ttgs_nodes
 from aqm_mjx.mapping import keypoints as kps
 from aqm_mjx.mapping.graph import Graph, build_graph, trim
 
@@ -162,7 +162,8 @@ def own_map(agent: Agent, aux, observations: jax.Array, traj_end: jax.Array, max
 
     ``('gas', way_steps, te_threshold, max_nodes)``: GAS's graph of every state
     (:func:`aqm_mjx.mapping.gas_nodes.gas_map`); ``('hilp', states)``: HILP's planning states
-    (:func:`aqm_mjx.mapping.states.planning_states`).
+    (:func:`aqm_mjx.mapping.states.planning_states`); ``('ttgs', nodes, tau)``: TTGS's dense map of
+    random states on the agent's distance (:func:`aqm_mjx.mapping.ttgs_nodes.ttgs_map`).
     """
     name, settings = agent.mapper
     kw = dict(settings)
@@ -170,12 +171,15 @@ def own_map(agent: Agent, aux, observations: jax.Array, traj_end: jax.Array, max
         return gas_nodes.gas_map(agent.encode, aux, observations, traj_end, max_len, **kw)
     if name == 'hilp':
         return states.planning_states(agent.encode, aux, observations, key, **kw), kw['states'], jnp.bool_(False)
-    raise ValueError(f'unknown map {name!r} (known: gas, hilp)')
+    if name == 'ttgs':
+        graph = ttgs_nodes.ttgs_map(agent.encode, agent.dist, aux, observations, key, **kw)
+        return graph, graph.mask.shape[0], jnp.bool_(False)
+    raise ValueError(f'unknown map {name!r} (known: gas, hilp, ttgs)')
 
 
 @functools.lru_cache(maxsize=8)
-def _jitted_own_map(encode, mapper, max_len: int):
-    agent = Agent(encode, None, None, mapper=mapper)
+def _jitted_own_map(encode, dist, mapper, max_len: int):
+    agent = Agent(encode, dist, None, mapper=mapper)
     return jax.jit(lambda aux, obs, ends, key: own_map(agent, aux, obs, ends, max_len, key))
 
 
@@ -189,9 +193,46 @@ def method_map(agent: Agent, data: dict, cfg: MapConfig, key: jax.Array, static:
     t0 = time.perf_counter()
     ends = trajectory_ends(data['terminals'])
     starts = np.concatenate([[0], np.flatnonzero(np.diff(ends)) + 1])
-    build = _jitted_own_map(agent.encode, agent.mapper, int(np.max(ends[starts] - starts + 1)))
+    build = _jitted_own_map(agent.encode, agent.dist, agent.mapper, int(np.max(ends[starts] - starts + 1)))
     graph, count, overflow = build(agent.aux, jnp.asarray(data['observations'], jnp.float32), jnp.asarray(ends), key)
     n = int(count)
     if isinstance(graph, Graph) and not static:
         graph = _trim_to_count(graph, max(n, 1))
     return graph, dict(keypoints=n, overflow=bool(overflow), seconds=time.perf_counter() - t0)
+
+
+CHECK_OFFSET = 25  # steps of data the distance check compares with one step
+CHECK_SCALE = 10.0  # how far from CHECK_OFFSET the median may read before the units are called wrong
+
+
+def distance_check(agent: Agent, observations, terminals, key: jax.Array, name: str = 'the method',
+                   pairs: int = 256) -> dict:
+    """Check a distance before a map is built on it: along the data's own trajectories, ``d`` must
+    grow with the steps between two states (``median d(s_t, s_{t+25}) > median d(s_t, s_{t+1})``;
+    a value of the wrong sign, or one that learned nothing, fails) and read 25 steps as steps
+    (the median within a factor 10 of 25; a distance in other units fails). ``pairs`` states ``s_t``
+    with 25 more states in their trajectory are drawn with ``key``.
+
+    Returns ``{'d0', 'd1', 'd25'}`` (the medians of d(s, s), d(s_t, s_{t+1}), d(s_t, s_{t+25}));
+    raises a one-line ValueError naming ``name`` and the numbers when either test fails."""
+    obs = np.asarray(observations, np.float32)
+    ends = trajectory_ends(np.asarray(terminals))
+    ok = np.flatnonzero(ends - np.arange(len(obs)) >= CHECK_OFFSET)
+    if not len(ok):
+        raise ValueError(f'the data hold no trajectory of {CHECK_OFFSET + 1} states to check the distance of {name} on')
+    t = np.asarray(jax.random.choice(key, jnp.asarray(ok), (min(pairs, len(ok)),), replace=False))
+    enc = jax.jit(jax.vmap(lambda o: agent.encode(agent.aux, o)))
+    dist = jax.jit(jax.vmap(lambda x, y: agent.dist(agent.aux, x, y)))
+    z0, z1, z25 = enc(obs[t]), enc(obs[t + 1]), enc(obs[t + CHECK_OFFSET])
+    out = {k: float(np.median(np.asarray(dist(z0, z)))) for k, z in (('d0', z0), ('d1', z1), ('d25', z25))}
+    numbers = (f'median d(s, s) {out["d0"]:.3g}, over 1 step {out["d1"]:.3g}, over {CHECK_OFFSET} steps '
+               f'{out["d25"]:.3g}, on {len(t)} pairs of the data')
+    if not np.isfinite(out['d25']) or not out['d25'] > out['d1']:
+        raise ValueError(f'the distance of {name} does not grow along the data\'s trajectories ({numbers}): a value of '
+                         'the wrong sign, or one that learned nothing; no map is built on it '
+                         '(--set agent.distance_check=false to build one anyway)')
+    if not CHECK_OFFSET / CHECK_SCALE <= out['d25'] <= CHECK_OFFSET * CHECK_SCALE:
+        raise ValueError(f'the distance of {name} reads {CHECK_OFFSET} steps of data as {out["d25"]:.3g} ({numbers}): '
+                         'not control steps (a value in other units?); no map is built on it '
+                         '(--set agent.distance_check=false to build one anyway)')
+    return out

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -24,7 +24,7 @@ from aqm_mjx import config as cfg_lib
 from aqm_mjx import presets
 from aqm_mjx.data import goals
 from aqm_mjx.data.dataset import Dataset
-from aqm_mjx.interface import Agent
+from aqm_mjx.interface import Agent, Distance
 from aqm_mjx.learn import losses, networks, policy
 from aqm_mjx.learn.learner import Learner, LoopConfig, Method, option
 
@@ -129,7 +129,8 @@ def polyak(params, target, tau: float):
 
 
 def make_learner(cfg: BaselineConfig, init_params: Callable, targets: tuple, loss: Callable, controller: Callable,
-                 modules: dict, encode: Callable = None, dist: Callable = None) -> Learner:
+                 modules: dict, encode: Callable = None, dist: Callable = None,
+                 distance: Optional[Distance] = None) -> Learner:
     """A :class:`Learner` from a method's parts.
 
     Args:
@@ -138,6 +139,8 @@ def make_learner(cfg: BaselineConfig, init_params: Callable, targets: tuple, los
         loss: ``(params, target, batch: GCBatch, key) -> (loss, info)``, the method's summed loss.
         controller: ``(params, obs [D], goal_obs [D], t, key) -> action [A]`` (the evaluation's actor).
         encode, dist: a quasimetric for methods that have one (QRL), else None.
+        distance: the method's value in control steps (:mod:`aqm_mjx.learn.distance`), for the planners
+            around any method; a quasimetric's own ``(encode, dist)`` when None and it has one.
     """
     tx = optax.adam(cfg.lr)
     sampling = cfg.sampling
@@ -168,8 +171,10 @@ def make_learner(cfg: BaselineConfig, init_params: Callable, targets: tuple, los
     def agent(aux=None) -> Agent:
         return Agent(encode, dist, controller, aux)
 
+    if distance is None and dist is not None:
+        distance = Distance(encode, dist, 'its quasimetric, in steps')
     return Learner(config=cfg, init=init, update=update, params=params_of, agent=agent, modules=modules, loss=loss,
-                   step=step)
+                   step=step, distance=distance)
 
 
 def goal_in(cfg: BaselineConfig, obs, goal):

@@ -9,7 +9,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.learn import losses, networks, policy
+from aqm_mjx.interface import Distance
+from aqm_mjx.learn import distance as to_steps, losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import option
 
@@ -50,7 +51,15 @@ def make(cfg: CRLConfig, obs_size: int, action_size: int):
         del t, key
         return actor.apply(p['actor'], obs, base.goal_in(cfg, obs, goal))[0]
 
-    return base.make_learner(cfg, init_params, (), loss, controller, {'critic': critic, 'actor': actor})
+    def dist(p, s, g):
+        a = jnp.clip(controller(p, s, g, 0, None), -1.0, 1.0)[None]  # the action its actor takes toward g
+        f = critic.apply(p['critic'], jnp.stack([s, s]), jnp.stack([s, g]), jnp.concatenate([a, a]))[0]  # [2 heads, 2]
+        return to_steps.steps_from_log_ratio(jnp.mean(f[:, 0]), jnp.mean(f[:, 1]), cfg.discount)
+
+    distance = Distance(to_steps.identity, dist, '(f(s, a, s) - f(s, a, g)) / log(1 / gamma) of its critic f, a '
+                        "its actor's action toward g, the two heads averaged")
+    return base.make_learner(cfg, init_params, (), loss, controller, {'critic': critic, 'actor': actor},
+                             distance=distance)
 
 
 METHODS = (base.Method('crl', CRLConfig, make, summary='CRL: contrastive critic (InfoNCE), DDPG+BC actor',

@@ -39,7 +39,7 @@ from flax import struct
 from aqm_mjx import config as cfg_lib
 from aqm_mjx.data import goals
 from aqm_mjx.interface import Agent, spec
-from aqm_mjx.learn import losses, networks, policy
+from aqm_mjx.learn import distance as to_steps, losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import Learner, option
 
@@ -275,7 +275,9 @@ def parts(cfg: GASConfig, obs_size: int, action_size: int) -> types.SimpleNamesp
         return state.params
 
     learner = Learner(config=cfg, init=init, update=update, params=params_of, agent=agent,
-                      modules={'tdr': tdr, 'value': value, 'critic': critic, 'actor': actor}, loss=loss, step=step)
+                      modules={'tdr': tdr, 'value': value, 'critic': critic, 'actor': actor}, loss=loss, step=step,
+                      distance=to_steps.of_hilbert(encode, cfg.discount, 'log_gamma(1 - (1 - gamma) ||psi(s) - psi(g)||) '
+                                                   'of its TDR value'))
     return types.SimpleNamespace(phi=phi, tdr_loss=tdr_loss, policy_loss=policy_loss, init=init, step=step,
                                  learner=learner)
 

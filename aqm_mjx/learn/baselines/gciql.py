@@ -9,7 +9,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.learn import losses, networks, policy
+from aqm_mjx.learn import distance as to_steps, losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import option
 
@@ -50,8 +50,10 @@ def make(cfg: GCIQLConfig, obs_size: int, action_size: int):
         del t, key
         return actor.apply(p['actor'], obs, base.goal_in(cfg, obs, goal))[0]
 
+    distance = to_steps.of_value(lambda p, s, g: value.apply(p['value'], s, g), cfg.discount,
+                                   'log_gamma(1 + (1 - gamma) V), V its state value')
     return base.make_learner(cfg, init_params, ('critic',), loss, controller,
-                             {'critic': critic, 'value': value, 'actor': actor})
+                             {'critic': critic, 'value': value, 'actor': actor}, distance=distance)
 
 
 METHODS = (base.Method('gciql', GCIQLConfig, make, summary='GCIQL: IQL Q and V, DDPG+BC actor',

@@ -8,7 +8,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.learn import losses, networks, policy
+from aqm_mjx.learn import distance as to_steps, losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import option
 
@@ -46,7 +46,10 @@ def make(cfg: GCIVLConfig, obs_size: int, action_size: int):
         del t, key
         return actor.apply(p['actor'], obs, base.goal_in(cfg, obs, goal))[0]
 
-    return base.make_learner(cfg, init_params, ('value',), loss, controller, {'value': value, 'actor': actor})
+    distance = to_steps.of_value(lambda p, s, g: jnp.mean(heads(p, s, g)), cfg.discount,
+                                   'log_gamma(1 + (1 - gamma) V), V the mean of its two value heads')
+    return base.make_learner(cfg, init_params, ('value',), loss, controller, {'value': value, 'actor': actor},
+                             distance=distance)
 
 
 METHODS = (base.Method('gcivl', GCIVLConfig, make, summary='GCIVL: implicit V-learning value, AWR actor',

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from aqm_mjx.interface import Agent, spec
-from aqm_mjx.learn import losses, networks, policy
+from aqm_mjx.learn import distance as to_steps, losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import option
 
@@ -106,14 +106,16 @@ def make(cfg: HILPConfig, obs_size: int, action_size: int):
         z = unit(phi(p, goal) - phi(p, obs))
         return actor.apply(p['actor'], obs, z)[0]
 
-    learner = base.make_learner(cfg, init_params, ('value', 'skill_critic'), loss, controller,
-                                {'value': value, 'skill_value': skill_value, 'skill_critic': skill_critic,
-                                 'actor': actor})
-    if not cfg.planning_recursions:
-        return learner
-
     def encode(p, obs):
         return phi(p, obs[None])[0]
+
+    distance = to_steps.of_hilbert(encode, cfg.discount, 'log_gamma(1 - (1 - gamma) ||phi(s) - phi(g)||) of its '
+                                   'Hilbert value')
+    learner = base.make_learner(cfg, init_params, ('value', 'skill_critic'), loss, controller,
+                                {'value': value, 'skill_value': skill_value, 'skill_critic': skill_critic,
+                                 'actor': actor}, distance=distance)
+    if not cfg.planning_recursions:
+        return learner
 
     def steer(p, obs, phi_s, target):
         """The latent policy's mean toward latent ``target`` from ``obs`` (``phi_s = phi(obs)``)."""

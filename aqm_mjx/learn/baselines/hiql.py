@@ -22,7 +22,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.learn import losses, networks, policy
+from aqm_mjx.learn import distance as to_steps, losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import option
 
@@ -94,8 +94,10 @@ def make(cfg: HIQLConfig, obs_size: int, action_size: int):
         sub = jnp.concatenate([networks.length_normalize(pred[..., :cfg.rep_dim]), pred[..., cfg.rep_dim:]], -1)
         return low.apply(p['low_actor'], obs, low_input(obs, sub))[0]
 
+    distance = to_steps.of_value(lambda p, s, g: jnp.mean(heads(p, s, g)), cfg.discount,
+                                   'log_gamma(1 + (1 - gamma) V), V the mean of its two heads of V(s, phi([s; g]))')
     return base.make_learner(cfg, init_params, ('value',), loss, controller,
-                             {'goal_rep': rep, 'value': value, 'low_actor': low, 'high_actor': high})
+                             {'goal_rep': rep, 'value': value, 'low_actor': low, 'high_actor': high}, distance=distance)
 
 
 METHODS = (base.Method('hiql', HIQLConfig, make, summary='HIQL: IVL value with goal representation, high and '

@@ -13,7 +13,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.learn import losses, networks, policy
+from aqm_mjx.learn import distance as to_steps, losses, networks, policy
 from aqm_mjx.learn.baselines import base
 from aqm_mjx.learn.learner import option
 
@@ -74,8 +74,10 @@ def make(cfg: SAWConfig, obs_size: int, action_size: int):
         del t, key
         return main(p, obs, goal)[0]
 
+    distance = to_steps.of_value(lambda p, s, g: jnp.mean(heads(p, s, g)), cfg.discount,
+                                   'log_gamma(1 + (1 - gamma) V), V the mean of its two heads of V(s, phi([s; g]))')
     return base.make_learner(cfg, init_params, ('value',), loss, controller,
-                             {'goal_rep': rep, 'value': value, 'sub_actor': sub_actor, 'actor': actor})
+                             {'goal_rep': rep, 'value': value, 'sub_actor': sub_actor, 'actor': actor}, distance=distance)
 
 
 METHODS = (base.Method('saw', SAWConfig, make, summary='SAW: IVL value, sub-policy and a flat policy bootstrapped '

@@ -1,0 +1,192 @@
+"""The planners around any method (issue: the map around every method): each method's value read as
+steps by hand, the check a distance passes before a map is built on it, and the TTGS-style map and
+rule (edge weights, Dijkstra's path, the subgoal choice) by hand."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from aqm_mjx.agent import planners, ttgs_rule
+from aqm_mjx.interface import Agent
+from aqm_mjx.learn import distance as to_steps
+from aqm_mjx.learn import methods
+from aqm_mjx.mapping import build, ttgs_nodes
+
+GAMMA = 0.99
+
+
+def test_steps_from_value_inverts_the_discounted_value_and_stays_finite_at_its_ends():
+    d = jnp.array([1.0, 10.0, 50.0, 200.0])
+    np.testing.assert_allclose(to_steps.steps_from_value(to_steps.value_from_steps(d, GAMMA), GAMMA), d, rtol=1e-3)
+    # V = -(1 - 0.99^10) / 0.01 = -9.5618 by hand
+    assert float(to_steps.value_from_steps(10.0, GAMMA)) == pytest.approx(-9.5618, abs=1e-3)
+    ends = to_steps.steps_from_value(jnp.array([0.5, 0.0, -100.0, -1e6]), GAMMA)
+    assert np.all(np.isfinite(ends)) and float(ends[0]) < 0.01 and float(ends[1]) < 0.01
+    # -1/(1 - gamma) + 1e-3 -> log(1e-5) / log(0.99) = 1145.5 steps: "farther than anything", not NaN
+    assert float(ends[2]) == pytest.approx(math.log(1e-5) / math.log(GAMMA), rel=1e-3)
+    assert float(ends[3]) == pytest.approx(float(ends[2]))
+    # CRL: a critic that falls by log(1/gamma) a step reads as steps
+    assert float(to_steps.steps_from_log_ratio(2.0, 2.0 - 7 * -math.log(GAMMA), GAMMA)) == pytest.approx(7.0)
+
+
+def _learner(name):
+    m = methods.get(name)
+    learner = m.make(m.preset('ci'), 29, 8)
+    return learner, learner.params(learner.init(jax.random.PRNGKey(0)))
+
+
+def _constant_value(params, value_steps):
+    """``params`` with the value network's last layer outputting ``V = value_from_steps(value_steps)``."""
+    net = params['value']['params']['value_net']
+    last = max((k for k in net if k.startswith('Dense')), key=lambda k: int(k.split('_')[1]))
+    v = float(to_steps.value_from_steps(value_steps, GAMMA))
+    net = dict(net, **{last: {'kernel': jnp.zeros_like(net[last]['kernel']), 'bias': jnp.full_like(net[last]['bias'], v)}})
+    return dict(params, value={'params': dict(params['value']['params'], value_net=net)})
+
+
+@pytest.mark.parametrize('name', ['gcivl', 'gciql', 'hiql', 'saw'])
+def test_a_value_of_known_steps_reads_as_those_steps(name):
+    learner, params = _learner(name)
+    p = _constant_value(params, 37.0)  # every head outputs V(37 steps)
+    dist = learner.distance
+    s, g = jnp.linspace(-1, 1, 29), jnp.linspace(2, 0, 29)
+    assert float(dist.dist(p, dist.encode(p, s), dist.encode(p, g))) == pytest.approx(37.0, rel=1e-3)
+    assert 'log_gamma' in dist.about
+
+
+@pytest.mark.parametrize('name', ['hilp', 'gas'])
+def test_a_hilbert_value_reads_its_norm_as_steps(name):
+    learner, params = _learner(name)
+    dist = learner.distance
+    norm = -float(to_steps.value_from_steps(12.0, GAMMA))  # ||phi(s) - phi(g)|| of a goal 12 steps away
+    u = jnp.zeros(dist.encode(params, jnp.zeros(29)).shape)
+    v = u.at[0].set(norm * 0.6).at[1].set(norm * 0.8)
+    assert float(dist.dist(params, u, v)) == pytest.approx(12.0, rel=1e-3)
+    assert float(dist.dist(params, u, u)) < 0.01
+
+
+def test_crl_reads_its_critic_from_the_state_itself_at_its_actors_action():
+    learner, params = _learner('crl')
+    dist = learner.distance
+    s, g = jnp.linspace(-1, 1, 29), jnp.linspace(2, 0, 29)
+    a = jnp.clip(learner.agent(params).controller(params, s, g, 0, None), -1, 1)
+    f = lambda goal: learner.modules['critic'].apply(params['critic'], s[None], goal[None], a[None])[0].mean()  # noqa: E731
+    by_hand = max((float(f(s)) - float(f(g))) / -math.log(GAMMA), 0.0)
+    assert float(dist.dist(params, s, g)) == pytest.approx(by_hand, rel=1e-4, abs=1e-5)
+    assert float(dist.dist(params, s, s)) == 0.0
+
+
+@pytest.mark.parametrize('name', ['qrl', 'aqm'])
+def test_a_quasimetric_is_its_own_distance(name):
+    learner, params = _learner(name)
+    agent, dist = learner.agent(params), learner.distance
+    s, g = jnp.linspace(-1, 1, 29), jnp.linspace(2, 0, 29)
+    assert float(dist.dist(params, dist.encode(params, s), dist.encode(params, g))) == \
+        float(agent.dist(params, agent.encode(params, s), agent.encode(params, g)))
+
+
+def test_around_builds_each_planner_and_refuses_a_method_without_a_value():
+    learner, params = _learner('gcivl')
+    own = learner.agent(params)
+    assert not own.plans
+    flat = planners.around(own, learner.distance, 'flat')
+    aqm = planners.around(own, learner.distance, 'aqm')
+    ttgs = planners.around(own, learner.distance, 'ttgs', ttgs=dict(nodes=64, tau=24.0, horizon=48.0, window=8))
+    assert not flat.plans and aqm.prunes and aqm.rule is None and aqm.controller is own.controller
+    assert ttgs.plans and not ttgs.prunes and ttgs.rule[0] == 'ttgs' and dict(ttgs.mapper[1])['nodes'] == 64
+    assert planners.around(own, learner.distance, 'own') is own
+    gcbc, p_bc = _learner('gcbc')
+    assert gcbc.distance is None
+    with pytest.raises(ValueError, match='gcbc has no value to plan with'):
+        planners.around(gcbc.agent(p_bc), None, 'aqm', 'gcbc')
+    with pytest.raises(ValueError, match="unknown planner 'astar'"):
+        planners.around(own, learner.distance, 'astar')
+
+
+# ------------------------------------------------------------------------------ the distance check
+def _line_data(n_traj=8, t_len=60):
+    """Trajectories along the x axis, one unit a step: the true distance is the x gap."""
+    x = np.tile(np.arange(t_len, dtype=np.float32), n_traj)
+    obs = np.stack([x, np.zeros_like(x)], 1)
+    terminals = np.zeros(len(x), bool)
+    terminals[t_len - 1::t_len] = True
+    return obs, terminals
+
+
+def _agent(dist):
+    return Agent(lambda aux, o: o, lambda aux, a, b: dist(b[0] - a[0]), None, aux=())
+
+
+def test_the_distance_check_passes_steps_and_names_a_wrong_sign_or_scale_in_one_line():
+    obs, terminals = _line_data()
+    key = jax.random.PRNGKey(0)
+    out = build.distance_check(_agent(jnp.abs), obs, terminals, key, name='exact')
+    assert out == dict(d0=0.0, d1=1.0, d25=25.0)
+    for wrong, what in ((lambda gap: 100.0 - jnp.abs(gap), 'does not grow'),  # a value (larger = nearer) read as d
+                        (lambda gap: 0.01 * jnp.abs(gap), 'reads 25 steps of data as 0.25'),  # other units
+                        (lambda gap: jnp.zeros_like(gap), 'does not grow')):  # learned nothing
+        with pytest.raises(ValueError, match=what) as e:
+            build.distance_check(_agent(wrong), obs, terminals, key, name='bad')
+        assert '\n' not in str(e.value) and 'the distance of bad' in str(e.value)
+    with pytest.raises(ValueError, match='no trajectory of 26 states'):
+        build.distance_check(_agent(jnp.abs), *_line_data(t_len=20), key)
+
+
+# ------------------------------------------------------------------------------------- the TTGS map
+def test_ttgs_edge_weights_by_hand():
+    d = jnp.array([[0.0, 10.0, 0.4], [30.0, 0.0, 24.0], [48.0, 5.0, 0.0]])
+    w = np.asarray(ttgs_nodes.soft_weights(d, tau=24.0))
+    assert np.all(np.isinf(np.diag(w)))
+    assert w[0, 1] == 10.0 and w[0, 2] == 1.0 and w[1, 2] == 24.0 and w[2, 1] == 5.0  # within tau; floored at 1
+    assert w[1, 0] == pytest.approx(30.0 * 1000.0 ** (30.0 / 24.0), rel=1e-5)  # 168,702: past tau, penalised
+    assert w[2, 0] == pytest.approx(48.0 * 1000.0 ** 2, rel=1e-5)
+
+
+def test_ttgs_map_draws_its_nodes_and_weighs_every_pair():
+    obs = jnp.stack([jnp.arange(50.0), jnp.zeros(50)], 1)
+    enc, dist = (lambda aux, o: o), (lambda aux, a, b: jnp.abs(b[0] - a[0]))
+    g = ttgs_nodes.ttgs_map(enc, dist, None, obs, jax.random.PRNGKey(3), nodes=20, tau=4.0)
+    x = np.asarray(g.obs[:, 0])
+    assert g.w.shape == (20, 20) and len(set(x.tolist())) == 20 and bool(g.mask.all())
+    np.testing.assert_allclose(np.asarray(g.w), np.asarray(ttgs_nodes.soft_weights(jnp.abs(x[None] - x[:, None]), 4.0)))
+
+
+def test_dijkstra_takes_the_cheap_detour_and_reads_the_path_back():
+    inf = jnp.inf
+    # 0 -> 1 -> 2 -> 3 costs 3; 0 -> 3 costs 10; 0 -> 4 -> 3 costs 6; node 5 is masked out
+    w = jnp.full((6, 6), inf)
+    for a, b, c in ((0, 1, 1.0), (1, 2, 1.0), (2, 3, 1.0), (0, 3, 10.0), (0, 4, 2.0), (4, 3, 4.0), (0, 5, 0.1),
+                    (5, 3, 0.1)):
+        w = w.at[a, b].set(c)
+    mask = jnp.array([True] * 5 + [False])
+    dist, prev = ttgs_rule.dijkstra(w, mask, jnp.int32(0), jnp.int32(3))
+    assert float(dist[3]) == 3.0
+    path, length = ttgs_rule.path_nodes(prev, jnp.int32(0), jnp.int32(3), jnp.bool_(True), 8)
+    assert int(length) == 4 and np.asarray(path).tolist() == [0, 1, 2, 3, -1, -1, -1, -1]
+    path, length = ttgs_rule.path_nodes(prev, jnp.int32(0), jnp.int32(3), jnp.bool_(True), 2)  # too long: its end
+    assert int(length) == 2 and np.asarray(path).tolist() == [2, 3]
+    _, length = ttgs_rule.path_nodes(prev, jnp.int32(0), jnp.int32(3), jnp.bool_(False), 8)
+    assert int(length) == 0
+
+
+def test_ttgs_subgoal_is_the_farthest_path_point_within_t_else_the_next_else_the_goal():
+    path = jnp.array([7, 8, 9, 10, 11, -1])
+    idx = jnp.arange(6)
+
+    def choose(d_goal, d_window, closest=0, length=5, end=10.0, horizon=48.0):
+        c, n = ttgs_rule.subgoal(jnp.float32(d_goal), jnp.asarray(d_window, jnp.float32), idx, jnp.int32(length),
+                                 jnp.int32(closest), jnp.float32(end), path, horizon)
+        return int(c), int(n)
+
+    far = [60.0, 5.0, 30.0, 47.0, 90.0, 0.0]  # closest point 1; 2 and 3 within T = 48; 4 beyond
+    assert choose(100.0, far) == (1, 10)  # the farthest within T: point 3 (node 10), not 4; point 5 is padding
+    assert choose(40.0, far) == (1, -1)  # the goal itself within T
+    none_near = [60.0, 5.0, 50.0, 70.0, 90.0, 0.0]  # nothing ahead within T: the point after the closest
+    assert choose(100.0, none_near) == (1, 9)
+    at_end = [90.0, 80.0, 70.0, 60.0, 5.0, 0.0]  # closest is the last point
+    assert choose(100.0, at_end, end=10.0) == (4, 11)  # its end is near the goal: stay on it
+    assert choose(100.0, at_end, end=60.0) == (4, -1)  # its end is far from the goal: the goal
+    assert choose(100.0, far, length=0) == (0, -1)  # no path: the goal
