@@ -190,3 +190,71 @@ def test_ttgs_subgoal_is_the_farthest_path_point_within_t_else_the_next_else_the
     assert choose(100.0, at_end, end=10.0) == (4, 11)  # its end is near the goal: stay on it
     assert choose(100.0, at_end, end=60.0) == (4, -1)  # its end is far from the goal: the goal
     assert choose(100.0, far, length=0) == (0, -1)  # no path: the goal
+
+
+# ------------------------------------------------------------------------------ end to end
+@pytest.mark.slow  # three pointmaze evaluations (a compile each): about 2 minutes
+def test_evaluate_runs_a_method_under_each_planner_on_the_same_episodes(tmp_path):
+    import json
+    import os
+
+    from aqm_mjx import assess
+    from aqm_mjx.data import synthetic
+    from aqm_mjx.learn import fit
+
+    data = synthetic.point_walks(n_traj=30, t_len=60)
+    path = str(tmp_path / 'pointmaze-medium-navigate.npz')
+    np.savez(path, **data)
+    cfg = methods.get('gcivl').preset('ci', env='pointmaze-medium', steps=100)
+    fit.train('gcivl', cfg, data, str(tmp_path / 'm'), progress=False, log=lambda *_: None, dataset_path=path)
+    over = ['protocol.episodes=2', 'protocol.horizon=30', 'protocol.tasks=1,2', 'agent.distance_check=false',
+            'agent.ttgs_nodes=48', 'agent.ttgs_window=8']
+    runs = {}
+    for planner in ('flat', 'aqm', 'ttgs'):
+        lines = []
+        res, rep = assess.evaluate_checkpoint(str(tmp_path / 'm'), out=str(tmp_path / planner), log=lines.append,
+                                              overrides=over + [f'agent.planner={planner}'])
+        runs[planner] = res
+        saved = json.load(open(os.path.join(tmp_path, planner, 'results.json')))
+        assert saved['config']['agent']['planner'] == planner
+    assert runs['flat'].agents == ['flat'] and runs['ttgs'].agents == ['planner']
+    assert runs['aqm'].agents[0] == 'aqm' and 'flat' in runs['aqm'].agents
+    # AQM's map around GCIVL keeps GCIVL's controller: its flat row is the flat run, episode for episode
+    for t in (1, 2):
+        np.testing.assert_array_equal(runs['aqm'].traces[('flat', 'base', t)]['xy'], runs['flat'].traces[('flat', 'base', t)]['xy'])
+    nodes = np.concatenate([runs['ttgs'].traces[('planner', 'base', t)]['node'].ravel() for t in (1, 2)])
+    assert nodes.min() >= -1 and nodes.max() < 48  # map nodes, or -1: the goal
+
+
+@pytest.mark.slow  # two pointmaze compiles: about 70 s
+def test_ttgs_around_the_exact_maze_distance_follows_its_path_to_the_goal():
+    """The TTGS planner on a distance that is right (the exact maze distance in steps) around a point
+    that steers straight at whatever it is given: flat, it runs into the walls on task 4; with the
+    map, it goes round them through the path's nodes to the goal."""
+    from aqm_mjx import envs
+    from aqm_mjx.agent import oracle
+    from aqm_mjx.agent.rules import AgentConfig
+    from aqm_mjx.envs import mazes
+    from aqm_mjx.evaluation import evaluate, protocol
+    from aqm_mjx.interface import Distance
+
+    env = envs.make('pointmaze-medium')
+    grid = mazes.layout('medium')
+    exact, _, _ = oracle.oracle_agent(env, grid, delta=4.0, speed=0.15)
+    straight = exact._replace(controller=lambda aux, o, g, t, k: (g[:2] - o[:2]) / (jnp.linalg.norm(g[:2] - o[:2]) + 1e-6))
+    ttgs = planners.around(straight, Distance(exact.encode, exact.dist), 'ttgs',
+                           ttgs=dict(nodes=600, tau=16.0, horizon=16.0, window=16))
+    free = np.argwhere(grid == 0)
+    rng = np.random.default_rng(0)
+    xy = mazes.ij_to_xy(free[rng.integers(len(free), size=3000)]) + rng.uniform(-1.5, 1.5, (3000, 2))
+    obs = np.zeros((3000, env.obs_size), np.float32)
+    obs[:, :2] = xy
+    graph = ttgs_nodes.ttgs_map(ttgs.encode, ttgs.dist, ttgs.aux, jnp.asarray(obs), jax.random.PRNGKey(0), 600, 16.0)
+    proto = protocol.ProtocolConfig(episodes=2, tasks=(1, 4), horizon=500, ablations=())
+    res = evaluate.evaluate(env, ttgs, graph, AgentConfig(), proto, progress=False)
+    flat = evaluate.evaluate(env, planners.around(straight, None, 'flat'), None, AgentConfig(), proto, progress=False)
+    assert res.agents == ['planner'] and flat.agents == ['flat']
+    assert res.summary['planner']['base']['task_4'] == 1.0 and flat.summary['flat']['base']['task_4'] == 0.0
+    assert res.summary['planner']['base']['task_1'] == 1.0
+    nodes = np.concatenate([res.traces[('planner', 'base', t)]['node'].ravel() for t in (1, 4)])
+    assert (nodes >= 0).mean() > 0.1 and nodes.max() < 600  # map nodes on the way, then the goal
