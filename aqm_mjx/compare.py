@@ -99,6 +99,29 @@ def _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, override
                 dataset=os.path.abspath(dataset) if dataset else None)
 
 
+PLANNERS = ('flat', 'aqm', 'ttgs')  # what --planners may name (aqm_mjx.agent.planners.CHOICES but 'own')
+
+
+def planner_rows(name: str, cfg, planners: Sequence[str], obs_size: int, action_size: int, log=print) -> dict:
+    """``{'METHOD+PLANNER': RunConfig}``: the rows ``compare --planners`` adds for method ``name`` (its
+    checkpoints evaluated again with ``agent.planner`` set), leaving out what would repeat its own row
+    (``flat`` for a method that runs flat, ``aqm`` for one that plans on AQM's map already) and what it
+    cannot run (``aqm``, ``ttgs`` without a value, said in one line)."""
+    learner = methods.get(name).make(cfg.train, obs_size, action_size)
+    own = learner.agent()
+    out = {}
+    for p in planners:
+        if p not in PLANNERS:
+            raise ValueError(f'--planners: unknown planner {p!r}; choose from {", ".join(PLANNERS)}')
+        if (p == 'flat' and not own.plans) or (p == 'aqm' and own.prunes):
+            continue  # its own row already
+        if p != 'flat' and learner.distance is None:
+            log(f'{name}: no value to plan with, so no {name}+{p} row')
+            continue
+        out[f'{name}+{p}'] = dataclasses.replace(cfg, agent=dataclasses.replace(cfg.agent, planner=p))
+    return out
+
+
 def _check_spec(out: str, spec: dict, names: list[str]) -> tuple[list[str], Optional[str]]:
     """The methods of ``OUT/compare.json`` and these, and the data's SHA-256 recorded there (None
     before the first data stage), after checking that the rest of the request is the same (a folder
@@ -134,13 +157,15 @@ def aggregate(per_method: dict[str, dict], seeds: Sequence[int]) -> dict:
 
     ``per_method[m]`` is that table (``summary: {LABEL/agent: {layout: {task_T, mean}}}``, labels
     ``m:seed_S``). A row is a method (its own agent: AQM's planner or a flat controller), or
-    ``method/agent`` for an ablation. Per layout it holds the per-task means over seeds, the
+    ``method/agent`` for an ablation; ``m`` may be ``method+planner`` (its checkpoints evaluated under
+    another planner, ``compare --planners``). Per layout it holds the per-task means over seeds, the
     per-seed means, their mean, the 95% t interval over seeds and the Wilson interval of the pooled
     episodes (seeds x tasks x episodes)."""
     rows = {}
     for m, res in per_method.items():
         episodes, tasks = int(res['episodes']), list(res['tasks'])
-        labels = assess.checkpoint_labels([f'seed_{s}' for s in seeds], [m] * len(seeds))  # as evaluate names them
+        method = m.split('+', 1)[0]  # 'gcivl+aqm': GCIVL's checkpoints under a planner (compare --planners)
+        labels = assess.checkpoint_labels([f'seed_{s}' for s in seeds], [method] * len(seeds))  # as evaluate names them
         agents = []
         for key in res['summary']:
             label, agent = key.split('/', 1)
@@ -438,10 +463,13 @@ def _pooled(cells: list, tasks: Sequence[int], episodes: int) -> dict:
 def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, preset: str = presets.DEFAULT,
             dataset: Optional[str] = None, style: str = 'navigate', collect_episodes: int = 100,
             collect_batch: int = 55, overrides: Sequence[str] = (), shift: str = 'base', first_seed: int = 0,
-            eval_seed: int = 0, log=print, collect_physics: str = 'mjx', collect_preset: str = 'ogbench') -> dict:
+            eval_seed: int = 0, log=print, collect_physics: str = 'mjx', collect_preset: str = 'ogbench',
+            planners: Sequence[str] = ()) -> dict:
     """``aqm-mjx compare``: data, then for each method in turn its seeds trained (vmapped) and evaluated
     on the shared episodes; ``OUT/results.json``, ``OUT/table.md`` and ``OUT/success.png`` are
     rewritten after each method, so an interrupted comparison leaves the table of those done.
+    ``planners`` (``flat``, ``aqm``, ``ttgs``): each method's checkpoints evaluated again under each
+    planner on the same episodes, as rows ``METHOD+PLANNER`` (:func:`planner_rows`).
 
     Everything (methods, overrides, layouts, tasks, the folder's earlier request) is checked before
     data are collected. Returns the comparison written to ``results.json``.
@@ -472,6 +500,7 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         processes.check_backend(c.protocol.backend)
     seed_ids = [first_seed + i for i in range(seeds)]
     spec = _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, overrides, dataset)
+    extra = {n: planner_rows(n, c, planners, env.obs_size, env.action_size, log) for n, c in cfgs.items()}
     given = assess.read_data(dataset, env) if dataset else None  # a damaged file is named before anything is written
     # several processes (aqm_mjx.processes): process 0 holds the folder's lock and writes the comparison's files,
     # process p trains seeds p, p + N, ... into their own folders; all of them evaluate every checkpoint together
@@ -525,9 +554,19 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
                 processes.barrier(f'compare: {n} evaluated')  # process 0 wrote its results.json
                 res = files.read_json(os.path.join(ev, 'results.json'))  # as a re-run reads it (JSON types)
             per_method[n] = res
+            for row, rc in extra[n].items():  # the same checkpoints under another planner (--planners)
+                ev_p = os.path.join(out, 'eval', row)
+                res_p = _evaluation(ev_p, folders, c.train.steps)
+                if res_p is None:
+                    log(f'[{i + 1}/{len(cfgs)} {n}] evaluate under planner {rc.agent.planner} ({row})')
+                    assess.evaluate_checkpoints(folders, ev_p, cfg=rc, dataset=path, shift=shift, seed=eval_seed,
+                                                log=log)
+                    processes.barrier(f'compare: {row} evaluated')
+                    res_p = files.read_json(os.path.join(ev_p, 'results.json'))
+                per_method[row] = res_p
             if writer:
                 _draw_curves(out, {m: seed_folders(out, m, seed_ids) for m in per_method}, env_name, preset)
-            result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs[m] for m in per_method},
+            result = _write_tables(out, spec, per_method, seed_ids, {m: cfgs.get(m) or extra[n][m] for m in per_method},
                                    log if i + 1 == len(cfgs) else (lambda *_: None), write=writer)
             if i + 1 < len(cfgs):
                 log(f'{n}: done; {out}/table.md now holds {", ".join(per_method)}')

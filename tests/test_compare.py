@@ -227,6 +227,33 @@ def test_compare_trains_evaluates_and_resumes_without_redoing_finished_methods(t
     assert json.load(open(os.path.join(out, 'compare.json'))) == saved
 
 
+@pytest.mark.slow  # two pointmaze evaluations: about 100 s
+def test_compare_planners_adds_each_method_under_another_planner_on_the_same_episodes(tmp_path):
+    _, path = _data(tmp_path)
+    out = str(tmp_path / 'cmp')
+    over = ['steps=100', 'protocol.tasks=1', 'protocol.episodes=2', 'protocol.horizon=20', 'protocol.curve_episodes=0',
+            'agent.distance_check=false', 'protocol.ablations=no-pruning,flat']
+    logs = []
+    res = compare.compare('pointmaze-medium', ['gcbc', 'gcivl'], 2, out, preset='ci', dataset=path, overrides=over,
+                          planners=['flat', 'aqm'], log=logs.append)
+    # gcbc has no value; gcivl runs flat on its own, so only gcivl+aqm is new (with its ablation rows)
+    assert 'gcbc: no value to plan with, so no gcbc+aqm row' in logs
+    assert [k for k in res['rows'] if not k.startswith('gcivl+aqm/')] == ['gcbc', 'gcivl', 'gcivl+aqm']
+    assert 'gcivl+aqm/flat' in res['rows'] and res['configs']['gcivl+aqm']['agent']['planner'] == 'aqm'
+    # the same checkpoints: GCIVL's flat row under AQM's map is GCIVL's own row, seed for seed
+    assert res['rows']['gcivl+aqm/flat']['base']['seed_means'] == res['rows']['gcivl']['base']['seed_means']
+    ev = json.load(open(os.path.join(out, 'eval', 'gcivl+aqm', 'results.json')))
+    assert set(ev['checkpoints']) == {'gcivl:seed_0', 'gcivl:seed_1'}
+    assert '| gcivl+aqm |' in open(os.path.join(out, 'table.md')).read()
+    again = []
+    compare.compare('pointmaze-medium', ['gcbc', 'gcivl'], 2, out, preset='ci', dataset=path, overrides=over,
+                    planners=['aqm'], log=again.append)
+    assert not any('evaluate under planner' in ln for ln in again)  # finished: read, not run again
+    with pytest.raises(ValueError, match="unknown planner 'astar'"):
+        compare.compare('pointmaze-medium', ['gcivl'], 2, out, preset='ci', dataset=path, overrides=over,
+                        planners=['astar'], **QUIET)
+
+
 def test_baselines_take_ogbench_settings_for_stitch_and_explore_data():
     """OGBench's hyperparameters.sh: on stitch data every method but GCBC draws half its actor goals
     from random dataset states, on explore data all of them, with the explore alphas; navigate keeps

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from aqm_mjx.agent.rules import (LEG_FIELDS, MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, keep_last_route,
-                                  redirect, replan)
+                                  reenters, redirect, replan)
 from aqm_mjx.agent import planners
 from aqm_mjx.interface import Agent, Decide
 from aqm_mjx.progress import EVERY, tick
@@ -103,12 +103,19 @@ def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
         # FOLLOW, BUDGET, PRUNE per environment (rules.agent_step); an environment whose episode is
         # done (at the goal, or at its limit) keeps its agent as it was, so that nothing is timed, cut
         # or logged after the end
-        if cfg.cut_slack:  # EXTENSION: parallel cuts, each row at its own slack
-            stepped = jax.vmap(lambda a, s, kp, p, e, c: agent_step(d, graph, cfg, a, s, kp, p, e, c))(
-                agents, enc(obs), kappa, patience, edges, inputs.cut_slack)
-        else:  # no row cuts in parallel (every row's slack is 0): the neighbourhoods are not computed
-            stepped = jax.vmap(lambda a, s, kp, p, e: agent_step(d, graph, cfg, a, s, kp, p, e, 0.0))(
-                agents, enc(obs), kappa, patience, edges)
+        z = enc(obs)
+
+        def step(attach):
+            if cfg.cut_slack:  # EXTENSION: parallel cuts, each row at its own slack
+                return lambda: jax.vmap(lambda a, s, kp, p, e, c: agent_step(d, graph, cfg, a, s, kp, p, e, c, attach))(
+                    agents, z, kappa, patience, edges, inputs.cut_slack)
+            # no row cuts in parallel (every row's slack is 0): the neighbourhoods are not computed
+            return lambda: jax.vmap(lambda a, s, kp, p, e: agent_step(d, graph, cfg, a, s, kp, p, e, 0.0, attach))(
+                agents, z, kappa, patience, edges)
+
+        # the K distances of a re-attachment only in a step where some environment overran its start leg
+        needs = jax.vmap(lambda a, s, p: reenters(d, graph, cfg, a, s, p))(agents, z, patience)
+        stepped = jax.lax.cond(jnp.any(needs), step(True), step(False))
         # REPLAN where an edge was cut (batched over those environments), then take the next hop
         new = replan(freeze(~done, agents, stepped), slots)
         if cfg.keep_route:  # EXTENSION: a cut that leaves no route to the goal is not made

@@ -328,9 +328,19 @@ def _log_cut(a: AgentState, edge_over: jax.Array) -> jax.Array:
                                mode='drop')
 
 
+def reenters(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
+             patience: jax.Array = 0.0) -> jax.Array:
+    """Whether :func:`agent_step` at ``s`` overruns a start leg, the one case in which it re-attaches
+    from ``s`` (``K`` distances, where every other case costs two): the rollout computes that
+    attachment only in the steps where some environment of the batch needs it (bool ``[]``)."""
+    reached, d_target = _follow(dist, graph, cfg, a, s)
+    t, _, stall, _ = _clock(a, d_target, cfg.progress)
+    return ~reached & overrun(patience, t, stall, a.budget) & (leg_kind(a.prev, a.node) == LEG_START)
+
+
 def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
                kappa: jax.Array, patience: jax.Array = 0.0, edges_only: jax.Array = False,
-               cut_slack=None) -> AgentState:
+               cut_slack=None, attach: bool = True) -> AgentState:
     """One environment's control step of the agent for the current latent ``s [L]``, in the paper's
     phases: follow the leg, check its budget, prune an overrun leg, take the next leg.
 
@@ -339,7 +349,9 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     pruned) and :func:`redirect` then choose the next hop from there. After a start leg overrun the
     agent re-attaches from ``s`` without the banned entries. ``patience`` > 0 runs the stall rule
     (``cfg.progress`` is its progress threshold); ``edges_only`` budgets keypoint edges alone;
-    ``cut_slack`` (default ``cfg.cut_slack``) sets the parallel cuts.
+    ``cut_slack`` (default ``cfg.cut_slack``) sets the parallel cuts. ``attach=False`` (static) skips
+    the re-attachment's ``K`` distances: for a step in which :func:`reenters` is False, where the
+    result is the same.
     """
     cut_slack = cfg.cut_slack if cut_slack is None else cut_slack
     kind = leg_kind(a.prev, a.node)
@@ -354,7 +366,8 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     w, to_g, banned, cut = _prune(a, over_kind, cut_slack, cfg.cut_into)
     # 4. NEXT LEG: after an edge or goal-leg cut, back at z_i to replan (redirect); after a start-leg
     # cut, re-attach from here (2 K + 2 distances per step, used on that overrun only)
-    from_s = planning.attach_start(dist, graph.z, graph.mask & ~banned, s, graph.tau)
+    from_s = (planning.attach_start(dist, graph.z, graph.mask & ~banned, s, graph.tau) if attach
+              else jnp.full(graph.mask.shape, jnp.inf))
     direct = planning.direct_edge(dist, s, a.goal, graph.tau)
     e_node, e_prev, e_budget, e_d = _entry(a.dist, from_s, to_g, direct, kappa, patience, edges_only)
     back = (over_kind == LEG_EDGE) | (over_kind == LEG_GOAL)

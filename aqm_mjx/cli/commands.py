@@ -400,7 +400,7 @@ def cmd_compare(a):
                     collect_episodes=collect_episodes_of(a), collect_batch=a.collect_batch,
                     collect_physics=collect_physics_of(a), overrides=overrides,
                     shift=a.shift, first_seed=a.seed, eval_seed=a.eval_seed,
-                    collect_preset=named_physics(overrides))
+                    collect_preset=named_physics(overrides), planners=a.planners)
     return 0
 
 
