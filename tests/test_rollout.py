@@ -91,6 +91,31 @@ def test_goal_and_start_legs_are_budgeted_by_hand():
     assert (int(b.node), int(b.prev), float(b.budget), int(b.t_edge)) == (1, START, 9.0, 0)
 
 
+def test_a_step_skips_the_re_attachment_only_where_no_start_leg_overruns():
+    """The rollout computes the K distances of a re-attachment only in a step where some environment
+    overran its start leg (``reenters``); in every other step ``attach=False`` gives the same agent,
+    and in that one it would not (it has no entry to re-attach to)."""
+    dist, g, cfg = _agent_step_case()  # z = 0, 10, 20 on a line, kappa 0.5, tau 6
+    b = rules.agent_init(dist, g, jnp.array([4.0]), jnp.array([20.5]), 0.5)  # start leg to z0, budget 6
+    for t in range(7):
+        s = jnp.array([4.0])
+        assert bool(rules.reenters(dist, g, cfg, b, s, 0.0)) == (t == 6)  # the 7th step overruns it
+        full = rules.agent_step(dist, g, cfg, b, s, 0.5)
+        lean = rules.agent_step(dist, g, cfg, b, s, 0.5, attach=False)
+        if t < 6:
+            jax.tree.map(np.testing.assert_array_equal, lean, full)
+        else:  # re-attached to z1 from 4.0 (6 away); without the attachment, no keypoint to enter
+            assert int(full.node) == 1 and int(lean.node) != 1
+        b = full
+    a = rules.agent_init(dist, g, jnp.array([10.3]), jnp.array([25.0]), 0.5)  # an edge overrun does not re-attach
+    for x in (10.0,) + (13.0,) * 16:
+        assert not bool(rules.reenters(dist, g, cfg, a, jnp.array([x]), 0.0))
+        lean = rules.agent_step(dist, g, cfg, a, jnp.array([x]), 0.5, attach=False)
+        a = rules.agent_step(dist, g, cfg, a, jnp.array([x]), 0.5)
+        jax.tree.map(np.testing.assert_array_equal, lean, a)
+    assert int(a.pruned) == 1
+
+
 def test_the_papers_rule_budgets_keypoint_edges_alone_by_hand():
     """``edges_only`` (the paper's rule, section 4.5): the start leg s -> z_1 and the goal leg z_n -> g
     run without a budget; a keypoint edge overruns after (1 + kappa) d steps and only that edge is
