@@ -86,6 +86,10 @@ def checked_distance(agent: Agent, trained: fit.Trained, data: dict, agent_cfg, 
     if agent_cfg.planner not in ('aqm', 'ttgs') or not agent_cfg.distance_check:
         return
     c = distance_check(agent, data['observations'], data['terminals'], key, name=trained.method)
+    if c is None:
+        log(f'note: the data hold no trajectory of {CHECK_OFFSET + 1} states: {trained.method}\'s distance is not '
+            f'checked before planner {agent_cfg.planner} maps on it')
+        return
     log(f'{trained.method}\'s distance along the data: median {c["d1"]:.3g} steps over 1 step, {c["d25"]:.3g} over '
         f'{CHECK_OFFSET} (d(s, s) {c["d0"]:.3g}): planner {agent_cfg.planner} on it')
 
@@ -136,7 +140,8 @@ def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, vari
     what = 'nodes of its own map' if agent.mapper is not None else f'keypoints at delta {cfg.map.delta}'
     n_agents = 1 + len(cfg.protocol.ablations) if agent.prunes else 1
     if cfg.protocol.ablations and not agent.prunes:
-        log(f'note: {trained.method} does not prune, so its own agent runs alone; the ablations '
+        who = trained.method if cfg.agent.planner == 'own' else f'{trained.method} under planner {cfg.agent.planner}'
+        log(f'note: {who} does not prune, so its own agent runs alone; the ablations '
             f'({", ".join(cfg.protocol.ablations)}) are rows of pruning agents (AQM, and QRL under its planner)')
     log(f'{env.name}, {trained.method} {trained.config.preset} preset at step {trained.step}: {m["keypoints"]} '
         f'{what} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '

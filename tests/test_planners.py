@@ -131,8 +131,7 @@ def test_the_distance_check_passes_steps_and_names_a_wrong_sign_or_scale_in_one_
         with pytest.raises(ValueError, match=what) as e:
             build.distance_check(_agent(wrong), obs, terminals, key, name='bad')
         assert '\n' not in str(e.value) and 'the distance of bad' in str(e.value)
-    with pytest.raises(ValueError, match='no trajectory of 26 states'):
-        build.distance_check(_agent(jnp.abs), *_line_data(t_len=20), key)
+    assert build.distance_check(_agent(jnp.abs), *_line_data(t_len=20), key) is None  # nothing to check on
 
 
 # ------------------------------------------------------------------------------------- the TTGS map
