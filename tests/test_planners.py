@@ -257,3 +257,17 @@ def test_ttgs_around_the_exact_maze_distance_follows_its_path_to_the_goal():
     assert res.summary['planner']['base']['task_1'] == 1.0
     nodes = np.concatenate([res.traces[('planner', 'base', t)]['node'].ravel() for t in (1, 4)])
     assert (nodes >= 0).mean() > 0.1 and nodes.max() < 600  # map nodes on the way, then the goal
+
+
+def test_a_dense_map_is_drawn_with_its_edges_within_tau_and_a_keypoint_graph_whole():
+    from aqm_mjx.evaluation.report import drawn_edges
+    from aqm_mjx.mapping.graph import Graph
+
+    x = jnp.arange(6.0)
+    d = jnp.abs(x[None] - x[:, None])
+    dense = Graph(z=x[:, None], obs=jnp.zeros((6, 2)), mask=jnp.ones(6, bool), w=ttgs_nodes.soft_weights(d, 1.5),
+                  tau=jnp.float32(1.5))
+    assert sorted(map(tuple, drawn_edges(dense).tolist())) == [(i, j) for i in range(6) for j in range(6) if abs(i - j) == 1]
+    sparse_w = jnp.where(d == 1.0, d, jnp.inf).at[0, 5].set(9.0)  # a keypoint graph: one long joining edge kept
+    sparse = dense.replace(w=sparse_w)
+    assert len(drawn_edges(sparse)) == 11

@@ -35,6 +35,17 @@ def print_summary(res: Results, log=print, false_alarm: float = 0.005) -> None:
             f'agent.patience={c["patience"]:.0f} (stall rule)')
 
 
+def drawn_edges(graph: Graph) -> np.ndarray:
+    """``[E, 2]`` the edges a report counts and draws: every finite one of a keypoint graph; of a dense
+    map (more than half the pairs joined: TTGS's, where every pair is, weighted past ``tau``), those
+    within ``tau`` alone, so that a map of 4,000 nodes is not 16 million lines in a picture."""
+    w, mask = np.asarray(graph.w), np.asarray(graph.mask)
+    k = int(mask.sum())
+    if k > 1 and np.isfinite(w[mask][:, mask]).sum() - k > 0.5 * k * (k - 1):
+        w = np.where(w <= float(graph.tau), w, np.inf)
+    return edge_list(w, mask)
+
+
 def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str, env_name: str, episodes: int,
           info: dict, name: Optional[str] = None, false_alarm: float = 0.005) -> dict:
     """Write ``out/results.json``, ``success.png``, ``trajectories.png`` and, with several layouts,
@@ -45,7 +56,7 @@ def write(res: Results, graph: Optional[Graph], layout, variants: dict, out: str
         nodes_xy, edges = np.zeros((0, 2)), np.zeros((0, 2), int)
     else:
         nodes_xy = np.asarray(graph.obs)[:, :2]
-        edges = edge_list(graph.w, np.asarray(graph.mask))
+        edges = drawn_edges(graph)
     report = dict(env=env_name, **info, edges=int(len(edges)), agents=res.agents, variants=res.variants,
                   tasks=res.tasks, summary=res.summary, legs=calibration.report(res, false_alarm), timing=res.timing,
                   backend=jax.default_backend(), provenance=provenance(),
