@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from aqm_mjx import envs, files, memory, presets, processes
+from aqm_mjx.agent import planners
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.evaluation import plots, report, stats
 from aqm_mjx.evaluation.protocol import plan_episodes
@@ -99,7 +100,7 @@ def _spec(env_name, style, preset, seeds, first_seed, eval_seed, shift, override
                 dataset=os.path.abspath(dataset) if dataset else None)
 
 
-PLANNERS = ('flat', 'aqm', 'ttgs')  # what --planners may name (aqm_mjx.agent.planners.CHOICES but 'own')
+PLANNERS = tuple(p for p in planners.CHOICES if p != 'own')  # what --planners may name
 
 
 def planner_rows(name: str, cfg, planners: Sequence[str], obs_size: int, action_size: int, log=print) -> dict:

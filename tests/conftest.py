@@ -74,3 +74,25 @@ def one_way_grid_walks():
 
     grid = synthetic.one_way_grid(5, one_way_column=2, open_rows=(4,))
     return synthetic.grid_walks(grid, episodes=400, steps=40, seed=0), synthetic.shortest_steps(grid)
+
+
+@pytest.fixture
+def point_model(tmp_path):
+    """``train(method, steps) -> folder``: a ``ci`` model of ``method`` trained ``steps`` updates on 30
+    point-maze walks of 60 steps, written as ``tmp_path/pointmaze-medium-navigate.npz`` (the run's
+    dataset), into ``tmp_path/method``."""
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx.data import synthetic  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.learn import fit, methods  # pylint: disable=import-outside-toplevel
+
+    data = synthetic.point_walks(n_traj=30, t_len=60)
+    path = str(tmp_path / 'pointmaze-medium-navigate.npz')
+    np.savez(path, **data)
+
+    def train(method: str, steps: int) -> str:
+        cfg = methods.get(method).preset('ci', env='pointmaze-medium', steps=steps)
+        fit.train(method, cfg, data, str(tmp_path / method), progress=False, log=lambda *_: None, dataset_path=path)
+        return str(tmp_path / method)
+
+    return train

@@ -329,14 +329,10 @@ def test_baseline_resume_is_bit_identical(tmp_path, name):
 
 # ------------------------------------------------------------------------------- evaluation
 @pytest.mark.slow  # the compare tests evaluate flat methods in CI (tests/test_compare.py)
-def test_a_flat_method_is_evaluated_without_a_map(tmp_path):
+def test_a_flat_method_is_evaluated_without_a_map(tmp_path, point_model):
     from aqm_mjx import assess as run_lib
 
-    data = synthetic.point_walks(n_traj=30, t_len=60)
-    path = str(tmp_path / 'pointmaze-medium-navigate.npz')
-    np.savez(path, **data)
-    cfg = methods.get('gcbc').preset('ci', env='pointmaze-medium', steps=50)
-    fit.train('gcbc', cfg, data, str(tmp_path / 'gcbc'), progress=False, log=lambda *_: None, dataset_path=path)
+    point_model('gcbc', 50)
     lines = []
     res, rep = run_lib.evaluate_checkpoint(str(tmp_path / 'gcbc'), overrides=['protocol.episodes=2',
                                            'protocol.horizon=30', 'protocol.tasks=1'], log=lines.append)

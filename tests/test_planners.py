@@ -193,25 +193,19 @@ def test_ttgs_subgoal_is_the_farthest_path_point_within_t_else_the_next_else_the
 
 # ------------------------------------------------------------------------------ end to end
 @pytest.mark.slow  # three pointmaze evaluations (a compile each): about 2 minutes
-def test_evaluate_runs_a_method_under_each_planner_on_the_same_episodes(tmp_path):
+def test_evaluate_runs_a_method_under_each_planner_on_the_same_episodes(tmp_path, point_model):
     import json
     import os
 
     from aqm_mjx import assess
-    from aqm_mjx.data import synthetic
-    from aqm_mjx.learn import fit
 
-    data = synthetic.point_walks(n_traj=30, t_len=60)
-    path = str(tmp_path / 'pointmaze-medium-navigate.npz')
-    np.savez(path, **data)
-    cfg = methods.get('gcivl').preset('ci', env='pointmaze-medium', steps=100)
-    fit.train('gcivl', cfg, data, str(tmp_path / 'm'), progress=False, log=lambda *_: None, dataset_path=path)
+    model = point_model('gcivl', 100)
     over = ['protocol.episodes=2', 'protocol.horizon=30', 'protocol.tasks=1,2', 'agent.distance_check=false',
             'agent.ttgs_nodes=48', 'agent.ttgs_window=8']
     runs = {}
     for planner in ('flat', 'aqm', 'ttgs'):
         lines = []
-        res, rep = assess.evaluate_checkpoint(str(tmp_path / 'm'), out=str(tmp_path / planner), log=lines.append,
+        res, rep = assess.evaluate_checkpoint(model, out=str(tmp_path / planner), log=lines.append,
                                               overrides=over + [f'agent.planner={planner}'])
         runs[planner] = res
         saved = json.load(open(os.path.join(tmp_path, planner, 'results.json')))

@@ -57,6 +57,7 @@ from flax import struct
 from aqm_mjx import config as cfg_lib
 from aqm_mjx import presets
 from aqm_mjx.agent import plan as planning
+from aqm_mjx.agent.planners import CHOICES as PLANNERS
 from aqm_mjx.config import option
 from aqm_mjx.mapping.graph import Graph
 
@@ -94,7 +95,7 @@ class AgentConfig:
                                '0: 8 on a CPU, 256 elsewhere')
     planner: str = option('own', "the planner around the method (aqm_mjx.agent.planners): 'own' (as it comes), "
                           "'flat' (no map), 'aqm' (AQM's map, budgets and pruning on the method's distance), 'ttgs' "
-                          '(a TTGS-style search on it)', ('own', 'flat', 'aqm', 'ttgs'))
+                          '(a TTGS-style search on it)', PLANNERS)
     distance_check: bool = option(True, "with planner aqm or ttgs: check the method's distance along the data's "
                                   'trajectories before a map is built (aqm_mjx.mapping.build.distance_check)')
     ttgs_nodes: int = option(4000, 'ttgs: random dataset states as nodes (TTGS: 4,000)')
@@ -119,7 +120,7 @@ class AgentConfig:
                              f'got {self.cut_slack}')
         if isinstance(self.replan_slots, bool) or not isinstance(self.replan_slots, int) or self.replan_slots < 0:
             raise ValueError(f'AgentConfig.replan_slots must be an integer >= 0 (0: by device); got {self.replan_slots}')
-        cfg_lib.check_choice('AgentConfig', 'planner', self.planner, ('own', 'flat', 'aqm', 'ttgs'))
+        cfg_lib.check_choice('AgentConfig', 'planner', self.planner, PLANNERS)
         cfg_lib.check_positive_int(self, 'ttgs_nodes', 'ttgs_window')
         for name in ('ttgs_tau', 'ttgs_horizon'):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):

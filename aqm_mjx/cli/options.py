@@ -227,7 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
                         '4/8, RESULTS 7.6); same as --set protocol.physics_preset=NAME')
     k.add_argument('--workers', type=int, default=None, help="with --backend ogbench: processes stepping the "
                                                              'environments (default 0: this process)')
-    k.add_argument('--planners', nargs='+', default=[], choices=['flat', 'aqm', 'ttgs'], metavar='PLANNER',
+    around = [c for f in known['sections']['agent']['fields'] if f['name'] == 'planner' for c in f['choices'] if c != 'own']
+    k.add_argument('--planners', nargs='+', default=[], choices=around, metavar='PLANNER',
                    help="each method's checkpoints also evaluated under these planners on the same episodes, as rows "
                         "METHOD+PLANNER: 'flat' (no map), 'aqm' (AQM's map, budgets and pruning on its distance), "
                         "'ttgs' (a TTGS-style search on it); --set agent.ttgs_tau=12 etc. for its settings")
