@@ -262,6 +262,9 @@ def test_a_dense_map_is_drawn_with_its_edges_within_tau_and_a_keypoint_graph_who
     dense = Graph(z=x[:, None], obs=jnp.zeros((6, 2)), mask=jnp.ones(6, bool), w=ttgs_nodes.soft_weights(d, 1.5),
                   tau=jnp.float32(1.5))
     assert sorted(map(tuple, drawn_edges(dense).tolist())) == [(i, j) for i in range(6) for j in range(6) if abs(i - j) == 1]
+    near = dense.replace(w=ttgs_nodes.soft_weights(d, 4.5), tau=jnp.float32(4.5))  # 28 pairs within tau
+    shortest = drawn_edges(near, limit=12)  # only the 12 shortest: the 10 of length 1, 2 of length 2
+    assert len(shortest) == 12 and sorted(abs(i - j) for i, j in shortest.tolist()) == [1] * 10 + [2] * 2
     sparse_w = jnp.where(d == 1.0, d, jnp.inf).at[0, 5].set(9.0)  # a keypoint graph: one long joining edge kept
     sparse = dense.replace(w=sparse_w)
     assert len(drawn_edges(sparse)) == 11
