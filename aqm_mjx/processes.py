@@ -4,9 +4,13 @@ JAX call.
     processes.start('10.0.0.1:1234', num_processes=2, process_id=0)   # on every process, its own id
     processes.writer()                                                 # True on process 0 alone
 
-Every process runs the same command; ``jax.devices()`` is then every process's devices, the
-evaluation's environment axis is sharded over all of them (:func:`aqm_mjx.evaluation.evaluate.device_mesh`)
-and its results are gathered on every process (``process_allgather``); process 0 alone writes files.
+Every process runs the same command; ``jax.devices()`` is then every process's devices. The
+evaluation runs each process's share of the episode chunks and gathers the outcomes on every process
+(``process_allgather``); ``compare`` trains seed ``i`` on process ``i mod N``; ``train`` and ``run``
+make one data-parallel run, the state replicated and each batch split over every device
+(:func:`aqm_mjx.learn.fit.train`). Process 0 alone writes files. :func:`put_global`,
+:func:`replicate`, :func:`fetch_global` and :func:`local_copy` move arrays between one process's
+host and the devices of all of them.
 On CPUs the collectives go through gloo (two processes of one machine, as the tests run it); on GPU
 nodes through NCCL. With no argument, :func:`start` lets JAX detect the cluster (SLURM, Open MPI,
 ...); the launcher (``srun``, ``mpirun`` or a shell loop) is the user's: there is no scheduler here.
@@ -144,3 +148,52 @@ def check_backend(backend: str) -> None:
     if backend == 'ogbench' and jax.process_count() > 1:
         raise ValueError("several processes evaluate in MJX, each running its share of the episodes on its own "
                          "devices; drop --backend ogbench (OGBench's environments step on one host)")
+
+
+# ------------------------------------------------------------------ arrays over every process's devices
+def put_global(x, sharding):
+    """A global array from one host array that every process holds (single- and multi-host)."""
+    import jax  # pylint: disable=import-outside-toplevel
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    x = np.asarray(x)
+    return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+
+def replicate(tree, sharding):
+    """``tree``'s arrays replicated on ``sharding``'s devices: ``device_put`` in one process; with
+    several, each leaf built from this process's host copy (every process holds the same values),
+    since one process cannot place arrays on another's devices."""
+    import jax  # pylint: disable=import-outside-toplevel
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding)
+    return jax.tree.map(lambda x: put_global(np.asarray(x), sharding), tree)
+
+
+def fetch_global(x):
+    """A (sharded) array as one host array on every process."""
+    import jax  # pylint: disable=import-outside-toplevel
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(jax.device_get(x))
+
+
+def local_copy(tree):
+    """Host arrays of a pytree of replicated global arrays: this process's own replica of each leaf
+    (no communication; every process holds the same values). Host and single-process arrays pass
+    through ``device_get``."""
+    import jax  # pylint: disable=import-outside-toplevel
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            return np.asarray(x.addressable_data(0))
+        return np.asarray(jax.device_get(x))
+
+    return jax.tree.map(one, tree)

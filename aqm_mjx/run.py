@@ -7,6 +7,7 @@ from :func:`aqm_mjx.pipeline.stage_keys` on every path.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from typing import Optional
@@ -15,15 +16,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx import envs, files, memory
+from aqm_mjx import envs, files, memory, processes
 from aqm_mjx.assess import learning_curve, map_and_evaluate, read_data, variants_for
 from aqm_mjx.data import collect
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.envs import shifts
 from aqm_mjx.evaluation.protocol import plan_episodes
 from aqm_mjx.learn import fit, methods
-from aqm_mjx.evaluation.evaluate import put_global
 from aqm_mjx.pipeline import RunConfig, make_run, stage_keys, summary
+from aqm_mjx.processes import put_global
 
 
 # ------------------------------------------------------------------------------------------- data
@@ -63,7 +64,15 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
     """``aqm-mjx run``: data -> train (Orbax checkpoints; resumed when interrupted, skipped when
     complete) -> map -> evaluate, one progress display per stage. The run key is
     ``PRNGKey(cfg.train.seed)``. Writes ``OUT/run.json`` (the config), ``OUT/summary.json`` and
-    returns the summary."""
+    returns the summary.
+
+    Several processes (:mod:`aqm_mjx.processes`, every process running this with the same
+    arguments): process 0 holds the folder's lock, collects the data (the others then read the file)
+    and writes every file; training is one data-parallel run (:func:`aqm_mjx.learn.fit.train`), without
+    the learning curve; the evaluation runs each process's share of the episodes in MJX."""
+    several, writer = jax.process_count() > 1, processes.writer()
+    if several:
+        processes.check_backend(cfg.protocol.backend)
     env_name = cfg.train.env
     env = envs.make(env_name)
     variants = variants_for(env.maze, shift)  # a bad --shift or task id fails here, not after training
@@ -71,15 +80,24 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
     memory.check_training(methods.get(cfg.method), cfg.train, env.obs_size, env.action_size)
     t0 = time.perf_counter()
     given = read_data(dataset, env) if dataset else None  # a damaged file is named before anything is written
-    with files.run_lock(out):  # one writer per run folder
+    with files.run_lock(out) if writer else contextlib.nullcontext():  # one writer per run folder
         # a folder trained with other settings is refused here, before run.json or data change
         fit.check_resumable(os.path.join(out, 'train'), cfg.method, cfg.train, env.obs_size, env.action_size)
-        files.write_json(os.path.join(out, 'run.json'), cfg.to_dict(), makedirs=True)
+        processes.barrier('run: request checked')  # every process read the folder before it changes
+        if writer:
+            files.write_json(os.path.join(out, 'run.json'), cfg.to_dict(), makedirs=True)
         times = {}
         seed = cfg.train.seed
         k_train, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
-        path = data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, physics=collect_physics,
-                          physics_preset=collect_preset)
+
+        def data_path():
+            return data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, physics=collect_physics,
+                              physics_preset=collect_preset)
+
+        path = data_path() if writer else None
+        processes.barrier('run: data written')
+        if not writer:  # process 0 collected it: found, not collected again
+            path = data_path()
         data = given if given is not None else read_data(path, env)
         times['data_s'] = time.perf_counter() - t0
         # TRAIN (resumed when checkpoints exist; skipped when the run is complete)
@@ -90,7 +108,7 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
                                f'{"resuming" if done else "training"} {cfg.method} {cfg.train.preset} preset, '
                                f'{cfg.train.steps} updates'))
         trained = fit.train(cfg.method, cfg.train, data, tdir, resume='auto', dataset_path=os.path.abspath(path),
-                            key=k_train, log=log, curve=learning_curve(env, data, cfg, k_eval))
+                            key=k_train, log=log, curve=None if several else learning_curve(env, data, cfg, k_eval))
         times['train_s'] = time.perf_counter() - t0
         # MAP + EVALUATE, with the trained state in memory
         t0 = time.perf_counter()
@@ -105,13 +123,15 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
                         pictures=[os.path.join(out, 'eval', p) for p in ('trajectories.png', 'success.png')]
                         + [p for p in [os.path.join(tdir, 'curves.png')] if os.path.exists(p)],
                         provenance=files.provenance())
-        files.write_json(os.path.join(out, 'summary.json'), summary_)
+        if writer:
+            files.write_json(os.path.join(out, 'summary.json'), summary_)
         head = res.agents[0]  # 'aqm', or 'flat' for a method without a quasimetric
         row = res.summary[head][res.variants[0]]
         log(f'{cfg.method} ({head}) on {env_name} ({res.variants[0]}): {100 * row["mean"]:.0f}% mean success ('
             + ', '.join(f'task {t}: {100 * row[f"task_{t}"]:.0f}%' for t in res.tasks) + f'); {rep["keypoints"]} '
             'keypoints; ' + ', '.join(f'{k[:-2]} {v:.0f} s' for k, v in times.items()))
-        log(f'wrote {out}/summary.json; map and trajectories: {out}/eval/trajectories.png')
+        if writer:
+            log(f'wrote {out}/summary.json; map and trajectories: {out}/eval/trajectories.png')
         if cfg.train.preset == 'ci':
             log(f'note: the ci preset checks the wiring ({cfg.train.steps} updates, {cfg.protocol.episodes} episodes '
                 'per task): its success rates say nothing about the method; --preset cpu is the smallest that does')

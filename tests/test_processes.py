@@ -99,6 +99,34 @@ def test_evaluate_over_two_processes_equals_one_process(tmp_path):
     assert (ra['device_count'], rb['device_count']) == (1, 2)
 
 
+def _launch(argv: list, out: str, port: int) -> list:
+    """The same `aqm-mjx` command as processes 0 and 1 of a two-process run (coordinator on ``port``)."""
+    return [subprocess.Popen([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--out', out, '--coordinator',
+                              f'127.0.0.1:{port}', '--num-processes', '2', '--process-id', str(i)], env=ENV,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+
+
+def _kill_second_at(procs: list, mark: str) -> tuple[str, list[int]]:
+    """Kill process 1 once the checkpoint folder ``mark`` exists; process 0 must end at once (under a
+    minute, exit code 2) with one line. Returns that line and the checkpoint steps left on disk."""
+    import time  # pylint: disable=import-outside-toplevel
+
+    t_end = time.monotonic() + 600
+    while not os.path.isdir(mark) and time.monotonic() < t_end and procs[1].poll() is None:
+        time.sleep(0.05)
+    assert os.path.isdir(mark), procs[1].communicate()[1][-3000:]
+    procs[1].kill()
+    t_kill = time.monotonic()
+    _, err = procs[0].communicate(timeout=300)
+    waited = time.monotonic() - t_kill
+    procs[1].communicate()
+    lines = [ln for ln in err.splitlines() if ln.startswith('aqm-mjx')]
+    assert procs[0].returncode == 2 and len(lines) == 1, err[-3000:]
+    assert waited < 60 and 'Check failure stack trace' not in err  # at once, not after XLA's shutdown barrier
+    assert 'run the same command again on every process' in lines[0], lines
+    return lines[0], sorted(int(s) for s in os.listdir(os.path.dirname(mark)))
+
+
 def _final_states(folder: str) -> dict:
     """{run folder: its newest checkpoint's arrays} of a comparison folder."""
     import glob  # pylint: disable=import-outside-toplevel
@@ -120,8 +148,6 @@ def test_compare_over_two_processes_equals_one_process_and_resumes_after_a_kill(
     Bit for bit on antmaze's shapes (29-d observations, 8-d actions: random ones here), where XLA's CPU
     program of one seed computes as each seed of the vmapped pair does; on pointmaze's 2-d ones the
     two programs differ in the last bits (RESULTS.md section 7.7)."""
-    import time  # pylint: disable=import-outside-toplevel
-
     rng = np.random.default_rng(0)
     path = str(tmp_path / 'antmaze-medium-navigate.npz')
     terminals = np.zeros(5000, bool)
@@ -136,31 +162,12 @@ def test_compare_over_two_processes_equals_one_process_and_resumes_after_a_kill(
                        text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     two = str(tmp_path / 'two')
-
-    def start(port):
-        return [subprocess.Popen([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--out', two, '--coordinator',
-                                  f'127.0.0.1:{port}', '--num-processes', '2', '--process-id', str(i)], env=ENV,
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
-
-    procs = start(free_port())
-    mark = os.path.join(two, 'train', 'gcbc', 'seed_1', 'checkpoints', '300')
-    t_end = time.monotonic() + 600
-    while not os.path.isdir(mark) and time.monotonic() < t_end and procs[1].poll() is None:
-        time.sleep(0.05)
-    assert os.path.isdir(mark), procs[1].communicate()[1][-3000:]
-    procs[1].kill()
-    t_kill = time.monotonic()
-    _, err = procs[0].communicate(timeout=300)
-    waited = time.monotonic() - t_kill
-    procs[1].communicate()
-    lines = [ln for ln in err.splitlines() if ln.startswith('aqm-mjx')]
-    assert procs[0].returncode == 2 and len(lines) == 1, err[-3000:]
-    assert 'process 0 of 2' in lines[0] and 'run the same command again on every process' in lines[0], lines
-    assert waited < 60 and 'Check failure stack trace' not in err  # at once, not after XLA's shutdown barrier
-    steps = sorted(int(s) for s in os.listdir(os.path.dirname(mark)))
+    line, steps = _kill_second_at(_launch(argv, two, free_port()),
+                                  os.path.join(two, 'train', 'gcbc', 'seed_1', 'checkpoints', '300'))
+    assert 'process 0 of 2' in line, line
     assert steps and max(steps) < 1000  # killed mid-training
 
-    procs = start(free_port())
+    procs = _launch(argv, two, free_port())
     outs = [p.communicate(timeout=900) for p in procs]
     assert all(p.returncode == 0 for p in procs), outs[0][1][-3000:] + outs[1][1][-3000:]
     assert 'gcbc: resuming 1 seed(s) at step' in outs[0][0] and 'gcbc: resuming 1 seed(s) at step' in outs[1][0]
@@ -187,3 +194,80 @@ def test_one_process_may_name_the_host_backend(tmp_path, capsys):
     assert main(['evaluate', '--checkpoint', missing, '--preset', 'ci', '--backend', 'ogbench']) == 2
     err = capsys.readouterr().err
     assert 'several processes' not in err and 'nowhere' in err, err
+
+
+def _model_outputs(folder: str, obs: np.ndarray) -> tuple:
+    """(quasimetric distances, main-policy actions) of a trained run on fixed states."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    from aqm_mjx.learn import fit  # pylint: disable=import-outside-toplevel
+
+    t = fit.load(folder, log=lambda *_: None)
+    z = t.learner.distance.encode(t.agent.aux, obs)
+    h = len(obs) // 2
+    return (t.step, np.asarray(t.learner.distance.dist(t.agent.aux, z[:h], z[h:])),
+            np.asarray(t.agent.controller(t.agent.aux, obs[:h], obs[h:], 0, jax.random.PRNGKey(0))))
+
+
+@pytest.mark.slow
+def test_train_over_two_processes_is_one_run_and_resumes_after_a_kill(tmp_path):
+    """`aqm-mjx train` as two processes: one data-parallel run (each batch split over both processes'
+    devices, the gradients summed across them), process 0 alone writing the folder. Process 1 killed
+    after checkpoint 200 ends process 0 with one line, leaving only whole checkpoints; the same command
+    again (with ``--resume``, as any train) resumes at the newest one and ends with the model of the
+    one-process run, to float rounding (the sums run in another order), with the same metric lines."""
+    rng = np.random.default_rng(0)
+    path = str(tmp_path / 'antmaze-medium-navigate.npz')
+    terminals = np.zeros(5000, bool)
+    terminals[99::100] = True
+    obs = rng.normal(size=(5000, 29)).astype(np.float32)
+    np.savez(path, observations=obs, actions=rng.uniform(-1, 1, (5000, 8)).astype(np.float32), terminals=terminals)
+    argv = ['train', '--dataset', path, '--preset', 'ci', '--steps', '400']
+    one = str(tmp_path / 'one')
+    r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--out', one], env=ENV, capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    two = str(tmp_path / 'two')
+    line, steps = _kill_second_at(_launch(argv, two, free_port()), os.path.join(two, 'checkpoints', '200'))
+    assert 'process 0 of 2 lost the others' in line, line
+    assert max(steps) < 400, steps  # killed mid-training
+    assert not [n for n in os.listdir(os.path.join(two, 'checkpoints')) if 'tmp' in n]  # no half-written checkpoint
+
+    procs = _launch(argv + ['--resume'], two, free_port())  # train's own rule: a run is continued with --resume
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][1][-3000:] + outs[1][1][-3000:]
+    assert all(f'resumed {two} at step {max(steps)}' in o for o, _ in outs), outs[0][0][-2000:]
+    assert 'wrote' in outs[0][0] and 'wrote' not in outs[1][0]  # process 0 alone writes
+    (s1, d1, a1), (s2, d2, a2) = _model_outputs(one, obs[:512]), _model_outputs(two, obs[:512])
+    assert s1 == s2 == 400
+    np.testing.assert_allclose(d2, d1, rtol=1e-4)
+    np.testing.assert_allclose(a2, a1, atol=1e-4)
+    ma, mb = ([json.loads(ln) for ln in open(os.path.join(f, 'metrics.jsonl'))] for f in (one, two))
+    assert [m['step'] for m in ma] == [m['step'] for m in mb]  # the killed run's extra lines were cut
+    np.testing.assert_allclose([m['qrl/loss'] for m in mb], [m['qrl/loss'] for m in ma], rtol=1e-4)
+
+
+@pytest.mark.slow
+def test_run_over_two_processes_gives_the_one_process_episodes(tmp_path):
+    """`aqm-mjx run` as two processes (point maze, `ci` preset): process 0 collects the data and
+    writes every file (process 1 finds the data), training is one data-parallel run, the evaluation
+    runs each process's share of the episodes in MJX; every episode (success, cuts, legs) and the
+    keypoint count equal the one-process run's in MJX (the point maze does not amplify the training's
+    float rounding as the ant's contacts would)."""
+    argv = ['run', '--env', 'pointmaze-medium', '--preset', 'ci']
+    one = str(tmp_path / 'one')
+    r = subprocess.run([sys.executable, '-m', 'aqm_mjx.cli', *argv, '--backend', 'mjx', '--out', one], env=ENV,
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    two = str(tmp_path / 'two')
+    procs = _launch(argv, two, free_port())
+    outs = [p.communicate(timeout=900) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][1][-3000:] + outs[1][1][-3000:]
+    assert '[1/4 data] collecting' in outs[0][0] and '[1/4 data] found' in outs[1][0]
+    assert 'wrote' in outs[0][0] and 'wrote' not in outs[1][0]  # process 0 alone writes
+    ea, eb = (np.load(os.path.join(f, 'eval', 'episodes.npz')) for f in (one, two))
+    assert ea.files == eb.files and len(ea['success']) == 30
+    for k in ea.files:
+        np.testing.assert_array_equal(ea[k], eb[k], err_msg=k)
+    sa, sb = (json.load(open(os.path.join(f, 'summary.json'))) for f in (one, two))
+    assert sa['keypoints'] == sb['keypoints'] and sa['success'] == sb['success']

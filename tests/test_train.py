@@ -223,3 +223,42 @@ def test_unreadable_newest_checkpoint_falls_back(tmp_path, capsys):
     assert '--resume' in capsys.readouterr().err
     assert cli.main(['train', '--dataset', dataset, '--env', 'antmaze-medium', '--out', str(tmp_path / 'r2')]) == 2
     assert 'observations are 2-d but the environment expects 29' in capsys.readouterr().err
+
+
+_DATA_PARALLEL = '''
+import jax, numpy as np
+from aqm_mjx.data import dataset as dsm
+from aqm_mjx.learn import fit, methods
+assert jax.device_count() == 2
+rng = np.random.default_rng(0)
+term = np.zeros(2000, bool); term[99::100] = True
+ds = dsm.to_device(dict(observations=rng.normal(size=(2000, 29)).astype(np.float32),
+                        actions=rng.uniform(-1, 1, (2000, 8)).astype(np.float32), terminals=term))
+for name in ('aqm', 'gcivl'):
+    entry = methods.get(name)
+    cfg = entry.preset('ci', env='antmaze-medium')
+    learner = entry.make(cfg, 29, 8)
+    step_fn = fit.chunk_step(learner.update, 20)
+    one, m1 = jax.jit(step_fn)(learner.init(jax.random.PRNGKey(0)), ds)
+    chunk, state, dsr = fit._data_parallel(step_fn, learner.init(jax.random.PRNGKey(0)), ds)
+    rep = jax.tree.leaves(state)[0].sharding  # replicated on the mesh over both devices
+    with jax.set_mesh(rep.mesh):
+        text = jax.jit(step_fn, in_shardings=(rep, rep)).lower(state, dsr).compile().as_text()
+    two, m2 = chunk(state, dsr)
+    loss = [k for k in m1 if k.endswith('loss')][0]
+    print(name, len(jax.tree.leaves(two)[0].sharding.device_set), text.count('all-reduce') > 0,
+          float(abs(m1[loss] - m2[loss]) / abs(m1[loss])), flush=True)
+'''
+
+
+def test_a_data_parallel_update_splits_the_batch_and_keeps_the_numbers(two_device_python):
+    """What several processes run for one training run (``fit._data_parallel``), on two devices of one
+    process: the state replicated on both, each batch split over them (``goals.spread``), the gradients
+    summed across them (an all-reduce in the compiled chunk), and the losses those of one device to
+    float rounding, for AQM and a baseline."""
+    out = two_device_python(_DATA_PARALLEL, __file__)
+    rows = {ln.split()[0]: ln.split()[1:] for ln in out.strip().splitlines()}
+    for name in ('aqm', 'gcivl'):
+        devices, reduces, rel = rows[name]
+        assert devices == '2' and reduces == 'True', rows[name]
+        assert float(rel) < 1e-4, rows[name]

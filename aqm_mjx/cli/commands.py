@@ -140,7 +140,8 @@ def cmd_methods(a):
 
 
 def cmd_train(a):
-    """Train a method on an OGBench-format dataset."""
+    """Train a method on an OGBench-format dataset (with several processes: one run, data-parallel)."""
+    start_processes(a)  # before any other JAX call: every process runs this same command
     enable_compile_cache()
     from aqm_mjx import envs  # pylint: disable=import-outside-toplevel
     from aqm_mjx.data import dataset  # pylint: disable=import-outside-toplevel
@@ -193,7 +194,10 @@ def cmd_train(a):
                        curve_drawer(shown.name, f'{shown.name} on {os.path.basename(a.dataset)}'))
     fit.train(method, cfg, data, a.out, resume=a.resume, steps=a.steps, dataset_path=os.path.abspath(a.dataset),
               curve=losses)
-    print(f'wrote {a.out} (config.json, metrics.jsonl, checkpoints/, curves.png)')
+    from aqm_mjx import processes  # pylint: disable=import-outside-toplevel
+
+    if processes.writer():
+        print(f'wrote {a.out} (config.json, metrics.jsonl, checkpoints/, curves.png)')
     return 0
 
 
@@ -270,13 +274,18 @@ def host_backend(preset_names, overrides) -> list:
 
 def cmd_run(a):
     """The whole pipeline: data -> train -> keypoints -> evaluate (step by step, or as one program)."""
+    n_processes = start_processes(a)  # before any other JAX call: every process runs this same command
     enable_compile_cache()
     import jax  # pylint: disable=import-outside-toplevel
 
     from aqm_mjx import assess, envs, files, run  # pylint: disable=import-outside-toplevel
 
+    if a.one_program and n_processes > 1:
+        raise ValueError('--one-program runs in one process (its seeds vmapped over its devices); drop it to run '
+                         'over several processes')
     cfg = run_config(a)
-    host = [] if a.one_program else host_backend([a.preset], overrides_of(a))
+    # several processes evaluate in MJX, each its share of the episodes
+    host = [] if a.one_program or n_processes > 1 else host_backend([a.preset], overrides_of(a))
     if host:
         cfg = cfg.with_overrides(host)
     out = a.out or os.path.join('runs', a.env)

@@ -92,6 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='train, select keypoints and evaluate as one jitted program (no checkpoints)')
     r.add_argument('--seeds', type=int, default=1, help='with --one-program: seeds vmapped in the one program')
     section_options(r, known['sections'])
+    process_options(r)  # several processes: process 0 collects and writes, one data-parallel training, MJX evaluation
     r.set_defaults(fn=commands.cmd_run)
     e = sub.add_parser('envs', help='list the environments and their evaluation tasks')
     e.set_defaults(fn=commands.cmd_envs)
@@ -163,6 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='continue the run in --out from its newest readable checkpoint with its saved config: '
                         'other options must agree with it (--steps may extend it), and the dataset must be the '
                         'one it was trained on (by fingerprint)')
+    process_options(t)  # several processes: one run, each batch split over every process's devices
     t.set_defaults(fn=commands.cmd_train)
     v = sub.add_parser(
         'evaluate', help='evaluate a trained model: OGBench protocol, ablations and shifts in one batch',

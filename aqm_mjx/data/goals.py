@@ -14,6 +14,11 @@ own index when the goal lies on the trajectory (``'goal'``; a random goal falls 
 Differences from OGBench's host-side sampler, on purpose: uniform trajectory goals are exactly
 uniform over ``t + 1 .. end`` (OGBench rounds a continuous draw, which halves the weight of the two
 ends), and every draw comes from an explicit key.
+
+Several processes training one run (:func:`aqm_mjx.learn.fit.train` over JAX's multi-controller
+runtime) split each batch over their devices: inside a mesh whose axis ``'batch'`` is set
+(``jax.set_mesh``), :func:`spread` constrains a batch's leading axis to it, and XLA sums the gradients
+across devices; without that mesh it changes nothing.
 """
 
 from __future__ import annotations
@@ -52,6 +57,16 @@ class GoalSampling:
             raise ValueError(f'subgoal_offset must be >= 1; got {self.subgoal_offset}')
         if self.subgoal_cap not in SUBGOAL_CAPS:
             raise ValueError(f'subgoal_cap must be one of {SUBGOAL_CAPS}; got {self.subgoal_cap!r}')
+
+
+def spread(tree):
+    """``tree``'s arrays with their leading (batch) axis split over the ``'batch'`` axis of the mesh in
+    context (``jax.set_mesh``; data-parallel training), unchanged without one. Values do not change,
+    only where XLA computes them."""
+    mesh = jax.sharding.get_abstract_mesh()
+    if mesh.empty or 'batch' not in mesh.axis_names:
+        return tree
+    return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, jax.sharding.PartitionSpec('batch')), tree)
 
 
 def goal_indices(keys, idx: jax.Array, end: jax.Array, n_states: int, cfg: GoalSampling):
@@ -114,8 +129,9 @@ def sample(ds: Dataset, key: jax.Array, batch_size: int, cfg: GoalSampling = Goa
     capped = cfg.subgoal_cap == 'goal'
     sub = subgoal_indices(idx, end, cfg.subgoal_offset, goal if capped else None, kind if capped else None)
     obs = ds.observations
-    return Batch(observations=obs[idx], actions=ds.actions[idx], next_observations=obs[idx + 1], goals=obs[goal],
-                 subgoals=obs[sub], index=idx, goal_index=goal, subgoal_index=sub, goal_kind=kind)
+    return spread(Batch(observations=obs[idx], actions=ds.actions[idx], next_observations=obs[idx + 1],
+                        goals=obs[goal], subgoals=obs[sub], index=idx, goal_index=goal, subgoal_index=sub,
+                        goal_kind=kind))
 
 
 # ------------------------------------------------------------------------------ the OGBench family
@@ -172,7 +188,7 @@ def sample_gc(ds: Dataset, key: jax.Array, batch_size: int, cfg: GCSampling = GC
     low = subgoal_indices(idx, end, cfg.subgoal_offset)
     at_goal = (vg == idx).astype(jnp.float32)
     obs = ds.observations
-    return GCBatch(observations=obs[idx], actions=ds.actions[idx], next_observations=obs[idx + 1],
-                   value_goals=obs[vg], rewards=at_goal - 1.0, masks=1.0 - at_goal, actor_goals=obs[ag],
-                   subgoals=obs[sub], low_goals=obs[low], index=idx, value_goal_index=vg, value_kind=vk,
-                   actor_goal_index=ag, actor_kind=ak, subgoal_index=sub)
+    return spread(GCBatch(observations=obs[idx], actions=ds.actions[idx], next_observations=obs[idx + 1],
+                          value_goals=obs[vg], rewards=at_goal - 1.0, masks=1.0 - at_goal, actor_goals=obs[ag],
+                          subgoals=obs[sub], low_goals=obs[low], index=idx, value_goal_index=vg, value_kind=vk,
+                          actor_goal_index=ag, actor_kind=ak, subgoal_index=sub))

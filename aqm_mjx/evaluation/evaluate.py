@@ -28,6 +28,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from aqm_mjx import envs as envs_lib
 from aqm_mjx import processes
+from aqm_mjx.processes import fetch_global, put_global, replicate  # noqa: F401 (put_global: re-exported)
 from aqm_mjx.agent.rollout import make_host_rollout, make_rollout
 from aqm_mjx.agent.rules import LEG_FIELDS, MAX_LEGS, AgentConfig
 from aqm_mjx.evaluation import calibration
@@ -43,30 +44,6 @@ def device_mesh(devices=None) -> Mesh:
     devices). ``device_mesh(jax.devices())`` spans every process's devices."""
     devices = jax.local_devices() if devices is None else list(devices)
     return Mesh(np.array(devices), ('env',))
-
-
-def put_global(x, sharding):
-    """A global array from one host array that every process holds (single- and multi-host)."""
-    x = np.asarray(x)
-    return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
-
-
-def replicate(tree, sharding):
-    """``tree``'s arrays replicated on ``sharding``'s devices: ``device_put`` in one process; with
-    several, each leaf built from this process's host copy (every process holds the same values),
-    since one process cannot place arrays on another's devices."""
-    if jax.process_count() == 1:
-        return jax.device_put(tree, sharding)
-    return jax.tree.map(lambda x: put_global(np.asarray(x), sharding), tree)
-
-
-def fetch_global(x) -> np.ndarray:
-    """A (sharded) array as one host array on every process."""
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
-
-        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-    return np.asarray(jax.device_get(x))
 
 
 class Results(NamedTuple):

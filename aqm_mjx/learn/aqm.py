@@ -186,7 +186,7 @@ def make(cfg: AQMConfig, obs_size: int, action_size: int) -> Learner:
         key, k_batch, k_rand = jax.random.split(state.key, 3)
         batch = goals.sample(ds, k_batch, b, gs)
         s, s1, w, g = batch.observations, batch.next_observations, batch.subgoals, batch.goals
-        rand = ds.observations[jax.random.randint(k_rand, (b,), 0, ds.size)]
+        rand = goals.spread(ds.observations[jax.random.randint(k_rand, (b,), 0, ds.size)])
         lam = lam_value(state.lam)
 
         def dist_fn(qp):

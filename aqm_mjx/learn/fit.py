@@ -109,8 +109,18 @@ def train(method: Union[str, methods.Method], cfg: Any, data: dict, out: str, re
         curve: evaluated at every checkpoint written (:class:`Curve`); None: no learning curve.
     Returns:
         :class:`Trained` with the final state.
+
+    Several processes (:mod:`aqm_mjx.processes`; every process calls this with the same arguments):
+    one run, data-parallel. The state and the dataset are replicated on a mesh over every process's
+    devices, each update's batch is split over its axis ``'batch'`` (:func:`aqm_mjx.data.goals.spread`;
+    ``batch_size`` a multiple of the device count) and XLA sums the gradients across processes, so
+    every process holds the same state. Process 0 alone holds the folder's lock and writes its files
+    (config, metric lines, checkpoints); on resume it restores the checkpoint and sends the state to
+    the others. The numbers are one process's up to float reassociation (the sums run in another
+    order). A process that ends makes the others end at the next update with one line.
     """
-    with files.run_lock(out):  # one writer per run folder
+    # one writer per run folder; with several processes, process 0 (the others only read it)
+    with files.run_lock(out) if processes.writer() else contextlib.nullcontext():
         return _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, key, curve)
 
 
@@ -166,26 +176,92 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
         dataset_path, data_sha = saved_meta.get('dataset') or dataset_path, saved_meta.get('data_sha256') or data_sha
     meta = meta_of(method.name, cfg, obs_size, action_size, dataset_path, data_sha)
     state = learner.init(jax.random.PRNGKey(cfg.seed) if key is None else key)
+    spread, writes = jax.process_count() > 1, processes.writer()  # several processes: process 0 writes
+    if spread:
+        _check_batch(cfg.batch_size)
     saver = None
     if resume:
-        saver = ckpt.Checkpointer(out, keep=cfg.keep)
-        step, state, _ = saver.restore(state, log=log, set_aside=True)
+        if writes:
+            saver = ckpt.Checkpointer(out, keep=cfg.keep)
+            step, state, _ = saver.restore(state, log=log, set_aside=True)
+        if spread:  # the writer's restored state, on every process
+            state = _from_writer(state, f'the state of {out}')
+        step = int(state.step)
         log(f'resumed {out} at step {step}' if step < cfg.steps else f'{out} is complete at step {step}')
     start = int(state.step)
     if start % cfg.updates_per_call:
         raise ValueError(f'checkpoint step {start} is not a multiple of updates_per_call {cfg.updates_per_call}')
-    _check_room([out], state, cfg, start)  # before anything is written to the folder
-    saver = saver or ckpt.Checkpointer(out, keep=cfg.keep)
-    trim_metrics(metrics_path, start)  # a fresh start drops what a killed run left
-    files.write_json(cfg_path, meta)
-    chunk = jax.jit(chunk_step(learner.update, cfg.updates_per_call), donate_argnums=0)
+    if writes:
+        _check_room([out], state, cfg, start)  # before anything is written to the folder
+        saver = saver or ckpt.Checkpointer(out, keep=cfg.keep)
+        trim_metrics(metrics_path, start)  # a fresh start drops what a killed run left
+        files.write_json(cfg_path, meta)
+    step_fn = chunk_step(learner.update, cfg.updates_per_call)
+    if spread:
+        chunk, state, ds = _data_parallel(step_fn, state, ds)
+    else:
+        chunk = jax.jit(step_fn, donate_argnums=0)
+    save = _saving([saver], [meta], [set()], lambda x, i: x) if writes else (lambda step, state: None)
     try:
-        state, step = _host_loop(chunk, state, ds, cfg, start, [out], _saving([saver], [meta], [set()], lambda x, i: x),
-                                 None, f'train {method.name} {cfg.preset}', progress, method.progress,
-                                 _curve_points(curve, method, [cfg], learner, [meta]), curve)
+        state, step = _host_loop(chunk, state, ds, cfg, start, [out], save, None, f'train {method.name} {cfg.preset}',
+                                 progress and writes, method.progress,
+                                 _curve_points(curve, method, [cfg], learner, [meta]) if writes else None, curve,
+                                 writes=writes)
     finally:
-        saver.close()
+        if saver is not None:
+            saver.close()
+    if spread:  # this process's replica as ordinary arrays of its first device
+        state = jax.tree.map(jnp.asarray, processes.local_copy(state))
     return Trained(method.name, cfg, learner, state, step, meta)
+
+
+def _check_batch(batch_size: int) -> None:
+    """Several processes split each batch over every device: refuse a batch that does not split."""
+    n = jax.device_count()
+    if batch_size % n:
+        raise ValueError(f'batch_size {batch_size} does not split over the {n} devices of {jax.process_count()} '
+                         f'processes: give a multiple of {n} (--set batch_size=N) or another number of processes')
+
+
+def _gone(what: str, e: BaseException) -> RuntimeError:
+    """One line for a collective that failed because a partner ended (XLA's and gloo's long status text)."""
+    return RuntimeError(f'process {jax.process_index()} of {jax.process_count()} lost the others while {what} '
+                        f'({" ".join(str(e).split())[:300]}); run the same command again on every process to resume')
+
+
+def _from_writer(state, what: str):
+    """Process 0's ``state`` on every process (the others pass a template of the same shapes)."""
+    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
+
+    try:
+        got = multihost_utils.broadcast_one_to_all(processes.local_copy(state))
+    except Exception as e:  # pylint: disable=broad-except
+        raise _gone(f'receiving {what} from process 0', e) from None
+    return jax.tree.map(jnp.asarray, got)
+
+
+def _data_parallel(step_fn: Callable, state, ds):
+    """``(chunk, state, ds)`` of one run over every process's devices: the state and the dataset
+    replicated on a 1-D mesh named ``'batch'``, each batch split over it (:func:`aqm_mjx.data.goals.spread`
+    reads the mesh in context). ``chunk(state, ds)`` returns replicated arrays once they are computed,
+    or ends with one line when a partner ended."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec  # pylint: disable=import-outside-toplevel
+
+    mesh = Mesh(np.array(jax.devices()), ('batch',))
+    rep = NamedSharding(mesh, PartitionSpec())
+    state, ds = processes.replicate((processes.local_copy(state), ds), rep)
+    jitted = jax.jit(step_fn, in_shardings=(rep, rep), out_shardings=rep, donate_argnums=0)
+
+    def chunk(state, ds):
+        try:
+            with jax.set_mesh(mesh):
+                return jax.block_until_ready(jitted(state, ds))
+        except jax.errors.JaxRuntimeError as e:  # a partner ended mid-update (gloo: connection closed)
+            if 'RESOURCE_EXHAUSTED' in str(e):  # out of memory: XLA's own message says what
+                raise
+            raise _gone('running the updates', e) from None
+
+    return chunk, state, ds
 
 
 class DivergedError(RuntimeError):
@@ -248,7 +324,7 @@ def _saving(savers: list, metas: list[dict], skip: list[set], pick: Callable) ->
 
 def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], save: Callable,
                seeds: Optional[int], desc: str, progress: bool, shown: dict,
-               points: Optional[Callable] = None, curve: Optional[Curve] = None):
+               points: Optional[Callable] = None, curve: Optional[Curve] = None, writes: bool = True):
     """The host side of training, shared by :func:`train` (``seeds=None``: one unvmapped state) and
     :func:`train_seeds` (``seeds=S``: every leaf stacked on a leading axis, one folder per seed).
 
@@ -258,8 +334,8 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
     ``log_every`` updates, move the bar, ``save(step, state)`` every ``checkpoint_every`` updates
     (:func:`_saving`). ``shown``: the metrics on the bar, ``{metric: short name}``
     (the method's ``progress``). ``points(step, i, state_i)``: after each checkpoint, seed ``i``'s
-    learning-curve metrics, appended as a line of their own (then ``curve.draw(outs)``). Returns
-    ``(state, step)``.
+    learning-curve metrics, appended as a line of their own (then ``curve.draw(outs)``). ``writes``
+    False (a process other than 0 of a data-parallel run): no metric lines. Returns ``(state, step)``.
     """
     n = 1 if seeds is None else seeds
     pick = (lambda x, i: x) if seeds is None else (lambda x, i: x[i])
@@ -272,11 +348,11 @@ def _host_loop(chunk: Callable, state, ds, cfg, start: int, outs: list[str], sav
         bar.set_postfix_str('compiling the training chunk (first call)', refresh=True)
     t_last, first, step = time.perf_counter(), True, start
     metric_files = [open(os.path.join(o, 'metrics.jsonl'), 'ab', buffering=0)  # pylint: disable=consider-using-with
-                    for o in outs]
+                    for o in (outs if writes else [])]
     try:
         while step < cfg.steps:
             state, m = chunk(state, ds)
-            m, finite = jax.device_get((m, check(state)))
+            m, finite = processes.local_copy((m, check(state)))  # (this process's replica when spread)
             step += cfg.updates_per_call
             now = time.perf_counter()
             timing = {'time/updates_per_s': n * cfg.updates_per_call / (now - t_last), 'time/includes_compile': first}
