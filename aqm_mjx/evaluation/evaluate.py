@@ -28,7 +28,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from aqm_mjx import envs as envs_lib
 from aqm_mjx import processes
-from aqm_mjx.processes import fetch_global, put_global, replicate  # noqa: F401 (put_global: re-exported)
+from aqm_mjx.processes import fetch_global, put_global, replicate
 from aqm_mjx.agent.rollout import make_host_rollout, make_rollout
 from aqm_mjx.agent.rules import LEG_FIELDS, MAX_LEGS, AgentConfig
 from aqm_mjx.evaluation import calibration

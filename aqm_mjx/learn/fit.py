@@ -183,11 +183,11 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
     if resume:
         if writes:
             saver = ckpt.Checkpointer(out, keep=cfg.keep)
-            step, state, _ = saver.restore(state, log=log, set_aside=True)
+            _, state, _ = saver.restore(state, log=log, set_aside=True)
         if spread:  # the writer's restored state, on every process
             state = _from_writer(state, f'the state of {out}')
-        step = int(state.step)
-        log(f'resumed {out} at step {step}' if step < cfg.steps else f'{out} is complete at step {step}')
+        at = int(state.step)
+        log(f'resumed {out} at step {at}' if at < cfg.steps else f'{out} is complete at step {at}')
     start = int(state.step)
     if start % cfg.updates_per_call:
         raise ValueError(f'checkpoint step {start} is not a multiple of updates_per_call {cfg.updates_per_call}')
@@ -249,7 +249,7 @@ def _data_parallel(step_fn: Callable, state, ds):
 
     mesh = Mesh(np.array(jax.devices()), ('batch',))
     rep = NamedSharding(mesh, PartitionSpec())
-    state, ds = processes.replicate((processes.local_copy(state), ds), rep)
+    state, ds = processes.replicate((state, ds), rep)
     jitted = jax.jit(step_fn, in_shardings=(rep, rep), out_shardings=rep, donate_argnums=0)
 
     def chunk(state, ds):
