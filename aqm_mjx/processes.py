@@ -6,7 +6,8 @@ JAX call.
 
 Every process runs the same command; ``jax.devices()`` is then every process's devices. The
 evaluation runs each process's share of the episode chunks and gathers the outcomes on every process
-(``process_allgather``); ``compare`` trains seed ``i`` on process ``i mod N``; ``train`` and ``run``
+(``process_allgather``); ``collect`` runs chunk ``i`` on process ``i mod N`` and gathers them
+(:func:`gather`); ``compare`` trains seed ``i`` on process ``i mod N``; ``train`` and ``run``
 make one data-parallel run, the state replicated and each batch split over every device
 (:func:`aqm_mjx.learn.fit.train`). Process 0 alone writes files. :func:`put_global`,
 :func:`replicate`, :func:`fetch_global` and :func:`local_copy` move arrays between one process's
@@ -131,6 +132,50 @@ def barrier(name: str) -> None:
                            f'{name!r}, and one of them ended ({first}); run the same command again on every '
                            'process to resume') from None
 
+
+def lost(what: str, e: BaseException) -> RuntimeError:
+    """One line for a collective that failed because a partner ended (XLA's and gloo's long status
+    text cut to its first 300 characters), saying what this process was doing."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    return RuntimeError(f'process {jax.process_index()} of {jax.process_count()} lost the others while {what} '
+                        f'({" ".join(str(e).split())[:300]}); run the same command again on every process to resume')
+
+
+def gather(tree, what: str):
+    """Every process's ``tree`` of host arrays, stacked: each leaf ``[processes, ...]``, on every
+    process (each process passes the same shapes; booleans travel as bytes and come back as
+    booleans). With one process, each leaf with a leading axis of 1. ``what``: what this process was
+    doing, for the one line of :func:`lost` when a partner ended."""
+    import jax  # pylint: disable=import-outside-toplevel
+    import numpy as np  # pylint: disable=import-outside-toplevel
+
+    tree = jax.tree.map(np.asarray, tree)
+    if jax.process_count() == 1:
+        return jax.tree.map(lambda x: x[None], tree)
+    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
+
+    sent = jax.tree.map(lambda x: x.astype(np.uint8) if x.dtype == bool else x, tree)
+    try:
+        got = multihost_utils.process_allgather(sent)
+    except Exception as e:  # pylint: disable=broad-except  (XLA's and gloo's errors carry long status text)
+        raise lost(what, e) from None
+    return jax.tree.map(lambda g, x: np.asarray(g).astype(x.dtype), got, tree)
+
+
+def from_writer(tree, what: str):
+    """Process 0's ``tree`` (host or replicated arrays) as host arrays on every process; the others
+    pass a template of the same shapes and dtypes. With one process, ``tree``'s host copy."""
+    import jax  # pylint: disable=import-outside-toplevel
+
+    if jax.process_count() == 1:
+        return local_copy(tree)
+    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
+
+    try:
+        return multihost_utils.broadcast_one_to_all(local_copy(tree))
+    except Exception as e:  # pylint: disable=broad-except
+        raise lost(f'receiving {what} from process 0', e) from None
 
 
 def share(n: int) -> list[int]:

@@ -238,8 +238,6 @@ def _gathered(rows: tuple, kept: dict, keep_rows: list, chunk: int, shapes) -> t
     ``(r // chunk) mod N``): every per-episode array (``rows``, each ``[E, ...]``) and the kept traces
     (``{row: {'xy', 'node', 'cuts', 'goal_xy'}}`` of ``keep_rows``) as if one process had run them all,
     on every process. ``shapes``: the chunk program's output shapes and dtypes."""
-    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
-
     count = jax.process_count()
     n = len(rows[0])
     owner = (np.arange(n) // chunk) % count
@@ -247,9 +245,8 @@ def _gathered(rows: tuple, kept: dict, keep_rows: list, chunk: int, shapes) -> t
     def pick(x, who, at):  # x [processes, len(at), ...] -> each row from its owner
         return x[who, np.arange(len(at))]
 
-    sent = tuple(x.astype(np.uint8) if x.dtype == bool else x for x in rows)  # (bools travel as bytes)
-    got = multihost_utils.process_allgather(sent)
-    out = [pick(np.asarray(x), owner, np.arange(n)).astype(r.dtype) for x, r in zip(got, rows)]
+    got = processes.gather(rows, 'gathering the episodes\' outcomes')
+    out = [pick(x, owner, np.arange(n)) for x in got]
     if not keep_rows:
         return (*out, {})
     k = len(keep_rows)  # each trace as the program gives one episode's: xy [T, 2], node [T], cuts [C, 2], goal [2]
@@ -260,9 +257,9 @@ def _gathered(rows: tuple, kept: dict, keep_rows: list, chunk: int, shapes) -> t
     for j, r in enumerate(keep_rows):
         for name, arr in kept.get(r, {}).items():
             mine[name][j] = arr
-    allk = multihost_utils.process_allgather(mine)
+    allk = processes.gather(mine, 'gathering the drawn episodes')
     who = owner[np.asarray(keep_rows)]
-    traces = {name: pick(np.asarray(x), who, keep_rows) for name, x in allk.items()}
+    traces = {name: pick(x, who, keep_rows) for name, x in allk.items()}
     return (*out, {r: {name: traces[name][j] for name in traces} for j, r in enumerate(keep_rows)})
 
 

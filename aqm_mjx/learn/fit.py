@@ -185,7 +185,7 @@ def _train(method, cfg, data, out, resume, steps, dataset_path, progress, log, k
             saver = ckpt.Checkpointer(out, keep=cfg.keep)
             _, state, _ = saver.restore(state, log=log, set_aside=True)
         if spread:  # the writer's restored state, on every process
-            state = _from_writer(state, f'the state of {out}')
+            state = jax.tree.map(jnp.asarray, processes.from_writer(state, f'the state of {out}'))
         at = int(state.step)
         log(f'resumed {out} at step {at}' if at < cfg.steps else f'{out} is complete at step {at}')
     start = int(state.step)
@@ -223,23 +223,6 @@ def _check_batch(batch_size: int) -> None:
                          f'processes: give a multiple of {n} (--set batch_size=N) or another number of processes')
 
 
-def _gone(what: str, e: BaseException) -> RuntimeError:
-    """One line for a collective that failed because a partner ended (XLA's and gloo's long status text)."""
-    return RuntimeError(f'process {jax.process_index()} of {jax.process_count()} lost the others while {what} '
-                        f'({" ".join(str(e).split())[:300]}); run the same command again on every process to resume')
-
-
-def _from_writer(state, what: str):
-    """Process 0's ``state`` on every process (the others pass a template of the same shapes)."""
-    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
-
-    try:
-        got = multihost_utils.broadcast_one_to_all(processes.local_copy(state))
-    except Exception as e:  # pylint: disable=broad-except
-        raise _gone(f'receiving {what} from process 0', e) from None
-    return jax.tree.map(jnp.asarray, got)
-
-
 def _data_parallel(step_fn: Callable, state, ds):
     """``(chunk, state, ds)`` of one run over every process's devices: the state and the dataset
     replicated on a 1-D mesh named ``'batch'``, each batch split over it (:func:`aqm_mjx.data.goals.spread`
@@ -259,7 +242,7 @@ def _data_parallel(step_fn: Callable, state, ds):
         except jax.errors.JaxRuntimeError as e:  # a partner ended mid-update (gloo: connection closed)
             if 'RESOURCE_EXHAUSTED' in str(e):  # out of memory: XLA's own message says what
                 raise
-            raise _gone('running the updates', e) from None
+            raise processes.lost('running the updates', e) from None
 
     return chunk, state, ds
 
@@ -522,20 +505,13 @@ def _gathered_saving(savers: list, metas: list[dict], skip: list[set], mine: int
     seeds ``p, p + N, ...``): every process sends its states to every other (``process_allgather``,
     each share padded to the largest), and process 0, holding ``savers`` of all ``n`` folders, writes
     them."""
-    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
-
     count, most = jax.process_count(), -(-n // jax.process_count())
 
     def save(step, state):
         local = jax.device_get(state)
         if mine < most:  # the same shapes on every process: repeat the first seed
             local = jax.tree.map(lambda x: np.concatenate([x] + [x[:1]] * (most - mine)), local)
-        try:
-            got = multihost_utils.process_allgather(local)  # [processes, most, ...] on every process
-        except Exception as e:  # pylint: disable=broad-except  (a partner ended: XLA's and gloo's long status text)
-            raise RuntimeError(f'process {jax.process_index()} of {count} could not gather checkpoint {step} from '
-                               f'the others ({" ".join(str(e).split())[:300]}); run the same command again on every '
-                               'process to resume') from None
+        got = processes.gather(local, f'gathering checkpoint {step}')  # [processes, most, ...] on every process
         for i, (saver, done) in enumerate(zip(savers, skip)):
             if step not in done:
                 saver.save(step, jax.tree.map(lambda x, i=i: x[i % count, i // count], got), metas[i])
