@@ -510,16 +510,10 @@ def compare(env_name: str, method_names: Sequence[str], seeds: int, out: str, pr
         processes.barrier('compare: request checked')  # every process read compare.json before it changes
         cpath = os.path.join(out, 'compare.json')
         kept = {} if recorded is None else dict(data_sha256=recorded)
-        def data_stage():
-            return run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
-                                  physics=collect_physics, physics_preset=collect_preset)
-
         if writer:
             files.write_json(cpath, dict(spec, methods=all_names, **kept), makedirs=True)
-            path = data_stage()
-        processes.barrier('compare: data written')
-        if not writer:  # process 0 collected it: found, not collected again
-            path = data_stage()
+        path = run.data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, style=style,
+                              physics=collect_physics, physics_preset=collect_preset)
         data = given if given is not None else assess.read_data(path, env)
         digest = ds_io.fingerprint(data)
         if recorded is not None and recorded != digest:

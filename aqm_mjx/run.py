@@ -34,7 +34,12 @@ def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, b
     """The dataset file of a run: ``dataset`` if given, else ``OUT/data/ENV-STYLE.npz`` (on a shifted
     ``layout``: ``OUT/data/ENV-STYLE-LAYOUT.npz``), collected in ``physics`` (``'mjx'``, or ``'mujoco'``
     on the host; ``episodes`` + a tenth for validation) with the settings of ``physics_preset``
-    (:mod:`aqm_mjx.envs.physics`) unless it is already there."""
+    (:mod:`aqm_mjx.envs.physics`) unless it is already there.
+
+    Several processes (every one calling this at the same point): process 0 decides whether the file
+    is there, every process collects its share of the chunks (:func:`aqm_mjx.data.collect.collect`),
+    process 0 writes the file and the others return once it is written (the run's folder is one
+    folder that every process reads: a shared file system across hosts)."""
     if dataset:
         if not os.path.exists(dataset):
             raise FileNotFoundError(f'dataset {dataset!r} not found')
@@ -43,17 +48,22 @@ def data_stage(env_name: str, out: str, dataset: Optional[str], episodes: int, b
                                  physics=physics, physics_preset=physics_preset).resolved()
     name = f'{env_name}-{style}' + ('' if layout == shifts.BASE else f'-{layout}')
     path = os.path.join(out, 'data', f'{name}.npz')
-    if os.path.exists(path):
+    writer = processes.writer()
+    if bool(processes.from_writer(np.asarray(os.path.exists(path)), f'whether {path} exists')):
         log(f'[1/4 data] found {path}, not collecting again')
         return path
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    collect.check_output(path, cfg=ccfg)  # room for it, before minutes of collection
+    if writer:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        collect.check_output(path, cfg=ccfg)  # room for it, before minutes of collection
     where = '' if layout == shifts.BASE else f' on layout {layout}'
     log(f'[1/4 data] collecting {ccfg.episodes} + {ccfg.val_episodes} {style} episodes x {ccfg.steps} states{where} '
-        + ('in MJX' if physics == 'mjx' else 'in MuJoCo on the host') + f', physics {physics_preset}')
+        + ('in MJX' if physics == 'mjx' else 'in MuJoCo on the host') + f', physics {physics_preset}'
+        + (f', over {processes.count()} processes' if processes.count() > 1 else ''))
     res = collect.collect(ccfg)
-    collect.write(res, path)
-    collect.plot(res, path[:-4] + '.png')
+    if writer:
+        collect.write(res, path)
+        collect.plot(res, path[:-4] + '.png')
+    processes.barrier(f'{path} written')
     return path
 
 
@@ -90,14 +100,8 @@ def run_stepwise(cfg: RunConfig, out: str, dataset: Optional[str] = None, collec
         seed = cfg.train.seed
         k_train, k_map, k_eval = stage_keys(jax.random.PRNGKey(seed))
 
-        def data_path():
-            return data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, physics=collect_physics,
-                              physics_preset=collect_preset)
-
-        path = data_path() if writer else None
-        processes.barrier('run: data written')
-        if not writer:  # process 0 collected it: found, not collected again
-            path = data_path()
+        path = data_stage(env_name, out, dataset, collect_episodes, collect_batch, log, physics=collect_physics,
+                          physics_preset=collect_preset)
         data = given if given is not None else read_data(path, env)
         times['data_s'] = time.perf_counter() - t0
         # TRAIN (resumed when checkpoints exist; skipped when the run is complete)

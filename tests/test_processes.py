@@ -249,8 +249,8 @@ def test_train_over_two_processes_is_one_run_and_resumes_after_a_kill(tmp_path):
 
 @pytest.mark.slow
 def test_run_over_two_processes_gives_the_one_process_episodes(tmp_path):
-    """`aqm-mjx run` as two processes (point maze, `ci` preset): process 0 collects the data and
-    writes every file (process 1 finds the data), training is one data-parallel run, the evaluation
+    """`aqm-mjx run` as two processes (point maze, `ci` preset): both collect the data, a share of
+    the chunks each, and process 0 writes every file; training is one data-parallel run, the evaluation
     runs each process's share of the episodes in MJX; every episode (success, cuts, legs) and the
     keypoint count equal the one-process run's in MJX (the point maze does not amplify the training's
     float rounding as the ant's contacts would)."""
@@ -263,7 +263,7 @@ def test_run_over_two_processes_gives_the_one_process_episodes(tmp_path):
     procs = _launch(argv, two, free_port())
     outs = [p.communicate(timeout=900) for p in procs]
     assert all(p.returncode == 0 for p in procs), outs[0][1][-3000:] + outs[1][1][-3000:]
-    assert '[1/4 data] collecting' in outs[0][0] and '[1/4 data] found' in outs[1][0]
+    assert all('[1/4 data] collecting' in o and 'over 2 processes' in o for o, _ in outs)
     assert 'wrote' in outs[0][0] and 'wrote' not in outs[1][0]  # process 0 alone writes
     ea, eb = (np.load(os.path.join(f, 'eval', 'episodes.npz')) for f in (one, two))
     assert ea.files == eb.files and len(ea['success']) == 30
@@ -271,3 +271,28 @@ def test_run_over_two_processes_gives_the_one_process_episodes(tmp_path):
         np.testing.assert_array_equal(ea[k], eb[k], err_msg=k)
     sa, sb = (json.load(open(os.path.join(f, 'summary.json'))) for f in (one, two))
     assert sa['keypoints'] == sb['keypoints'] and sa['success'] == sb['success']
+
+
+@pytest.mark.parametrize('physics', ['mujoco', pytest.param('mjx', marks=pytest.mark.slow)])
+def test_collect_over_two_processes_writes_the_one_process_dataset(tmp_path, physics):
+    """`aqm-mjx collect` as two processes: 11 episodes in chunks of 4 (chunks 1 and 3 on process 0,
+    chunk 2 on process 1, which has none in the second round); process 0 alone writes, and the files
+    hold the arrays one process collects, episode for episode."""
+    from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
+    from aqm_mjx.data import dataset as dsm  # pylint: disable=import-outside-toplevel
+
+    argv = ['collect', '--env', 'pointmaze-medium', '--style', 'stitch', '--episodes', '10', '--steps', '30',
+            '--batch', '4', '--seed', '5', '--physics', physics]
+    out = str(tmp_path / 'pm.npz')
+    procs = _launch(argv, out, free_port())
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][1][-3000:] + outs[1][1][-3000:]
+    said = [[ln for ln in o.splitlines() if not ln.startswith('[Gloo]')] for o, _ in outs]
+    assert 'collecting 10 + 1 (val)' in said[0][0] and said[1] == []  # process 0 alone speaks and writes
+    assert json.load(open(str(tmp_path / 'pm.json')))['processes'] == 2
+    one = collect.collect(collect.CollectConfig(env='pointmaze-medium', style='stitch', episodes=10, steps=30,
+                                                batch=4, seed=5, physics=physics), progress=False)
+    for got, want in ((dsm.read_ogbench(out), one.train), (dsm.read_ogbench(dsm.val_path(out)), one.val)):
+        assert sorted(got) == sorted(want)
+        for k in want:
+            np.testing.assert_array_equal(got[k], want[k], err_msg=k)

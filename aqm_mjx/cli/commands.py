@@ -91,25 +91,39 @@ def cmd_render(a):
 
 
 def cmd_collect(a):
-    """Collect an OGBench-format dataset with the scripted expert (MJX, or MuJoCo on the host)."""
+    """Collect an OGBench-format dataset with the scripted expert (MJX, or MuJoCo on the host); with
+    several processes each collects its share of the chunks and process 0 writes the files."""
+    start_processes(a)  # before any other JAX call: every process runs this same command
     enable_compile_cache()
-    from aqm_mjx import files  # pylint: disable=import-outside-toplevel
+    from aqm_mjx import files, processes  # pylint: disable=import-outside-toplevel
     from aqm_mjx.data import collect  # pylint: disable=import-outside-toplevel
 
     cfg = collect.CollectConfig(env=a.env, style=a.style, episodes=a.episodes, steps=a.steps, noise=a.noise,
                                 batch=a.batch, seed=a.seed, layout=a.layout, physics=a.physics,
                                 physics_preset=a.physics_preset).resolved()
-    collect.check_output(a.out, a.overwrite, cfg)  # name, folder and free space before minutes of collection
+    writer = processes.writer()
+    if writer:
+        collect.check_output(a.out, a.overwrite, cfg)  # name, folder and free space before minutes of collection
     collect.check_memory(cfg)
     import jax  # pylint: disable=import-outside-toplevel
 
     where = jax.devices()[0] if cfg.physics == 'mjx' else 'the host (MuJoCo)'
-    print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
-          f'{cfg.env} ({cfg.layout} layout), noise {cfg.noise}, {cfg.batch} at a time on {where}, physics '
-          f'{cfg.physics_preset}')
+    if processes.count() > 1:
+        where = f'{where} and the devices of {processes.count() - 1} more processes' if cfg.physics == 'mjx' else \
+            f'the hosts of {processes.count()} processes (MuJoCo)'
+    if writer:
+        print(f'collecting {cfg.episodes} + {cfg.val_episodes} (val) {cfg.style} episodes x {cfg.steps} states in '
+              f'{cfg.env} ({cfg.layout} layout), noise {cfg.noise}, {cfg.batch} at a time on {where}, physics '
+              f'{cfg.physics_preset}')
     physics = {k: v for k, v in (('iterations', a.iterations), ('ls_iterations', a.ls_iterations)) if v is not None}
     res = collect.collect(cfg, physics=physics)
-    train, val = collect.write(res, a.out, overwrite=a.overwrite)
+    if not writer:  # process 0 writes the files; the others end once it has
+        processes.barrier('collect: written')
+        return 0
+    try:
+        train, val = collect.write(res, a.out, overwrite=a.overwrite)
+    finally:  # the others wait here, written or not (an error here is process 0's to show)
+        processes.barrier('collect: written')
     # the data are complete from here on: a picture or summary the disk has no room for is a warning
     png, summary = a.out[:-4] + '.png', a.out[:-4] + '.json'
     try:

@@ -141,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument('--ls-iterations', type=int, default=None, help="MJX line-search iterations (default MuJoCo's: 50)")
     c.add_argument('--out', required=True, help='output .npz (the -val twin, .png and .json go beside it)')
     c.add_argument('--overwrite', action='store_true', help='replace existing output files')
+    process_options(c)  # several processes: chunk i on process i mod N, process 0 writes the files
     c.set_defaults(fn=commands.cmd_collect)
     t = sub.add_parser('train', help='train a method on a dataset (Orbax checkpoints)',
                        description='Train a registered method (default AQM: quasimetric IQE + QRL, Q-AWR target and '

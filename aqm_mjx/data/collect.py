@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from aqm_mjx import envs, files
+from aqm_mjx import envs, files, processes
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.data import expert
 from aqm_mjx.envs import locomaze, mazes, shifts
@@ -402,7 +402,11 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
 
     Episodes run ``cfg.batch`` at a time: in MJX as one jitted, vmapped call (time under
     ``lax.scan``), or with ``cfg.physics == 'mujoco'`` on the host (:class:`HostEpisodes`); the host
-    copies each chunk once into preallocated arrays.
+    copies each chunk once into preallocated arrays. With several processes (:mod:`aqm_mjx.processes`,
+    each calling this with the same ``cfg``), chunk ``i`` runs on process ``i mod N``, on its own
+    devices (or host), and every process gathers every chunk: the same arrays, episode for episode,
+    as one process collects (episode ``e``'s key is ``fold_in(seed, e)`` and the chunks are the same);
+    the bar shows on process 0.
 
     Args:
         cfg: what to collect (see :class:`CollectConfig`).
@@ -418,7 +422,7 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
                     **(physics or {}))
     total = cfg.episodes + cfg.val_episodes
     batch = min(int(cfg.batch), total)
-    bar = _progress(total, f'collect {cfg.env} {cfg.style}', progress)
+    bar = _progress(total, f'collect {cfg.env} {cfg.style}', progress and processes.writer())
     ticks = ChunkBar(bar)
     grid = None if cfg.layout == shifts.BASE else cfg.grid()
     if cfg.physics == 'mujoco':
@@ -433,25 +437,29 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
                qpos=np.empty((n, nq), np.float32), qvel=np.empty((n, nv), np.float32))
     reached = np.empty(total, np.int64)
     flipped = np.empty(total, bool)
-    chunks = range(0, total, batch)
+    count, me = jax.process_count(), jax.process_index()
+    chunks = list(range(0, total, batch))
+    rounds = -(-len(chunks) // count)  # several processes: in round r, process p runs chunk r * count + p
     t0 = time.perf_counter()
     first_chunk_s = None  # the first call compiles, then runs one chunk
-    for first in chunks:
-        ids = jnp.arange(first, first + batch)
-        keys = jax.vmap(lambda e: jax.random.fold_in(base, e))(ids)
-        m = min(batch, total - first)
-        ticks.start(m, t)
-        out = jax.device_get(run(keys if cfg.physics == 'mjx' else keys[:m]))  # MJX: one static shape
+    for r in range(rounds):
+        firsts = chunks[r * count:(r + 1) * count]
+        sizes = [min(batch, total - f) for f in firsts]
+        mine = firsts[me] if me < len(firsts) else None
+        ticks.start(sum(sizes), t)  # the round's episodes, moved on as this process's chunk runs
+        out = _chunk(run, base, mine, batch, total, cfg.physics == 'mjx', env, t)
         ticks.finish()
         if first_chunk_s is None:
             first_chunk_s = time.perf_counter() - t0
-        rows = slice(first * t, (first + m) * t)
-        for k in buf:
-            buf[k][rows] = out[k][:m].reshape(m * t, -1)
-        reached[first:first + m] = out['goals_reached'][:m]
-        flipped[first:first + m] = ~out['upright'][:m, -1]
+        got = processes.gather(out, f'collecting chunks {r * count + 1}-{r * count + len(firsts)} of {len(chunks)}')
+        for first, m, o in zip(firsts, sizes, range(len(firsts))):
+            rows = slice(first * t, (first + m) * t)
+            for k in buf:
+                buf[k][rows] = got[k][o, :m].reshape(m * t, -1)
+            reached[first:first + m] = got['goals_reached'][o, :m]
+            flipped[first:first + m] = ~got['upright'][o, :m]
         if bar is not None:
-            bar.set_postfix(transitions=(first + m) * t)
+            bar.set_postfix(transitions=(firsts[-1] + sizes[-1]) * t)
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - t0
@@ -462,16 +470,35 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     train = {k: v[:cut] for k, v in buf.items()}
     val = {k: v[cut:] for k, v in buf.items()}
     run_s = wall - first_chunk_s
-    steady = (total - min(batch, total)) * t
+    steady = (total - min(count * batch, total)) * t  # after the first round, which compiled
     stats = dict(env=cfg.env, style=cfg.style, layout=cfg.layout, episodes=cfg.episodes, val_episodes=cfg.val_episodes,
                  steps=cfg.steps, noise=cfg.noise, batch=batch, seed=cfg.seed, transitions=int(n),
                  wall_s=round(wall, 2), first_chunk_s=round(first_chunk_s, 2),
                  steady_transitions_per_s=round(steady / run_s, 1) if steady and run_s > 0 else None,
                  goals_reached_mean=float(reached.mean()), flipped_episodes=int(flipped.sum()),
-                 progress_callbacks=ticks.calls, physics=cfg.physics,
+                 progress_callbacks=ticks.calls, physics=cfg.physics, processes=count,
                  physics_preset=envs.physics_presets.describe(env.physics),
                  backend=jax.default_backend() if cfg.physics == 'mjx' else 'host')
     return CollectResult(train=train, val=val, config=cfg, stats=stats)
+
+
+def _chunk(run, base, first: Optional[int], batch: int, total: int, mjx: bool, env, t: int) -> dict:
+    """One chunk's records as host arrays, ``batch`` episodes from id ``first`` (the last chunk padded
+    with zeros: MJX runs one static shape, the host only the episodes that exist; ``first=None``, a
+    process with no chunk in this round, gives zeros alone): ``observations``, ``actions``, ``qpos``,
+    ``qvel`` ``[batch, t, ...]``, ``goals_reached [batch]`` and ``upright [batch]`` (after the last
+    step)."""
+    widths = dict(observations=env.obs_size, actions=env.action_size, qpos=env.mj_model.nq, qvel=env.mj_model.nv)
+    if first is None:
+        out = {k: np.zeros((0, t, d), np.float32) for k, d in widths.items()}
+        out.update(goals_reached=np.zeros(0, np.int32), upright=np.zeros((0, t), bool))
+    else:
+        keys = jax.vmap(lambda e: jax.random.fold_in(base, e))(jnp.arange(first, first + batch))
+        out = jax.device_get(run(keys if mjx else keys[:min(batch, total - first)]))
+    kept = {k: np.asarray(out[k], np.float32).reshape(-1, t, d) for k, d in widths.items()}
+    kept.update(goals_reached=np.asarray(out['goals_reached'], np.int64), upright=np.asarray(out['upright'])[:, -1])
+    return {k: v if len(v) == batch else np.concatenate([v, np.zeros((batch - len(v),) + v.shape[1:], v.dtype)])
+            for k, v in kept.items()}
 
 
 def _row_width(env) -> int:

@@ -5,13 +5,18 @@ episode's outcome (``episodes.npz``) and the table (``results.json``) are the sa
     python benchmarks/throughput/bench_processes.py                                  # the shipped checkpoint
     python benchmarks/throughput/bench_processes.py --episodes 1 --horizon 30       # a quick look
     python benchmarks/throughput/bench_processes.py --compare --steps 2000          # compare --seeds 2, gcbc and gcivl
+    python benchmarks/throughput/bench_processes.py --collect mujoco                # collect, chunks over processes
 
 With ``--compare``: ``aqm-mjx compare --methods gcbc gcivl --seeds 2 --preset ci`` on antmaze-medium
 (``--dataset``, or random antmaze-shaped data: 29-d observations, 8-d actions), one process against
 two (seed i trained on process i): wall time of each and whether every final training state is the
 same bit for bit, every episode and the table.
 
-Both runs evaluate in MJX (``--backend mjx``; OGBench's host-stepped environments run in one process),
+With ``--collect PHYSICS``: ``aqm-mjx collect`` of antmaze-medium navigate (``--episodes`` training
+episodes, a tenth more for validation, ``--batch-of`` at a time; chunk i on process i mod 2) in
+``mjx`` or ``mujoco`` (the host): wall time of each and whether both files hold the same arrays.
+
+Both evaluations run in MJX (``--backend mjx``; OGBench's host-stepped environments run in one process),
 each with an empty compilation cache of its own, in chunks of ``--envs`` environments: two processes
 run every other chunk each, with the program one process runs, so every episode is the one-process
 run's bit for bit (the ant's included). On 2 cores the two processes share the cores that one
@@ -49,6 +54,10 @@ def main():
     p.add_argument('--compare', action='store_true', help='time `aqm-mjx compare --seeds 2` instead')
     p.add_argument('--steps', type=int, default=2000, help='--compare: training updates per seed')
     p.add_argument('--dataset', default=None, help='--compare: an antmaze-medium .npz (default: random data)')
+    p.add_argument('--collect', default=None, choices=['mjx', 'mujoco'], help='time `aqm-mjx collect` instead')
+    p.add_argument('--collect-episodes', type=int, default=20, help='--collect: training episodes (and a tenth more)')
+    p.add_argument('--collect-steps', type=int, default=1001, help='--collect: states per episode')
+    p.add_argument('--batch-of', type=int, default=6, help='--collect: episodes a chunk')
     p.add_argument('--out', default=None, help='JSON file for the rows')
     a = p.parse_args()
     work = tempfile.mkdtemp(prefix='bench-processes-')
@@ -57,6 +66,10 @@ def main():
                 'gcivl', '--seeds', '2', '--preset', 'ci', '--dataset', a.dataset or _random_data(work),
                 '--set', f'train.steps={a.steps}', '--set', f'protocol.episodes={a.episodes}',
                 '--set', f'protocol.horizon={a.horizon}']
+    elif a.collect:
+        argv = [sys.executable, '-m', 'aqm_mjx.cli', 'collect', '--env', 'antmaze-medium', '--episodes',
+                str(a.collect_episodes), '--steps', str(a.collect_steps), '--batch', str(a.batch_of), '--physics',
+                a.collect]
     else:
         argv = [sys.executable, '-m', 'aqm_mjx.cli', 'evaluate', '--checkpoint', a.checkpoint, '--backend', 'mjx',
                 '--shift', a.shift, '--episodes', str(a.episodes), '--horizon', str(a.horizon), '--ablations',
@@ -64,12 +77,12 @@ def main():
     env = dict(os.environ, JAX_PLATFORMS='cpu', XLA_FLAGS='')
     rows, outs = [], {}
     for n in (1, 2):
-        out = outs[n] = os.path.join(work, f'{n}p')
+        out = outs[n] = os.path.join(work, f'{n}p') + ('.npz' if a.collect else '')
         run_env = dict(env, JAX_COMPILATION_CACHE_DIR=os.path.join(work, f'cache{n}'))
         with socket.socket() as s:
             s.bind(('127.0.0.1', 0))
             port = s.getsockname()[1]
-        envs = [] if a.compare else ['--envs', str(a.envs)]
+        envs = [] if a.compare or a.collect else ['--envs', str(a.envs)]
         extra = (lambda i: envs) if n == 1 else (lambda i: envs + ['--coordinator', f'127.0.0.1:{port}',
                                                                    '--num-processes', '2', '--process-id', str(i)])
         t0 = time.perf_counter()
@@ -83,6 +96,14 @@ def main():
             rows.append(dict(row=f'{n} process{"es" * (n > 1)}', processes=n, wall_s=round(wall, 1)))
             print(rows[-1], flush=True)
             continue
+        if a.collect:
+            stats = json.load(open(out[:-4] + '.json'))
+            rows.append(dict(row=f'{n} process{"es" * (n > 1)}', processes=n, physics=a.collect,
+                             episodes=stats['episodes'] + stats['val_episodes'], steps=stats['steps'],
+                             batch=stats['batch'], wall_s=round(wall, 1), collect_s=stats['wall_s'],
+                             first_chunk_s=stats['first_chunk_s']))
+            print(rows[-1], flush=True)
+            continue
         res = json.load(open(os.path.join(out, 'results.json')))
         rows.append(dict(row=f'{n} process{"es" * (n > 1)}', processes=n, devices=res['device_count'],
                          envs_per_chunk=res['timing']['envs_per_chunk'],
@@ -92,6 +113,14 @@ def main():
         print(rows[-1], flush=True)
     if a.compare:
         rows.append(dict(row='two against one', **_same_comparison(outs[1], outs[2]),
+                         wall_ratio=round(rows[0]['wall_s'] / rows[1]['wall_s'], 2)))
+        print(rows[-1], flush=True)
+        finish(rows, a.out)
+        return
+    if a.collect:
+        same = all(all(np.array_equal(x[k], y[k]) for k in x.files) and sorted(x.files) == sorted(y.files)
+                   for x, y in ((np.load(outs[1][:-4] + t), np.load(outs[2][:-4] + t)) for t in ('.npz', '-val.npz')))
+        rows.append(dict(row='two against one', files_identical=bool(same),
                          wall_ratio=round(rows[0]['wall_s'] / rows[1]['wall_s'], 2)))
         print(rows[-1], flush=True)
         finish(rows, a.out)
