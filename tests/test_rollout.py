@@ -102,6 +102,11 @@ def test_a_step_skips_the_re_attachment_only_where_no_start_leg_overruns():
         assert bool(rules.reenters(dist, g, cfg, b, s, 0.0)) == (t == 6)  # the 7th step overruns it
         full = rules.agent_step(dist, g, cfg, b, s, 0.5)
         lean = rules.agent_step(dist, g, cfg, b, s, 0.5, attach=False)
+        # the rollout's way: d(s, target) computed once (|4 - z0| = 4, not within the switch radius 1)
+        followed = rules.follow(dist, g, cfg, b, s)
+        assert (bool(followed[0]), float(followed[1])) == (False, 4.0)
+        assert bool(rules.reenters(dist, g, cfg, b, s, 0.0, followed)) == (t == 6)
+        jax.tree.map(np.testing.assert_array_equal, rules.agent_step(dist, g, cfg, b, s, 0.5, followed=followed), full)
         if t < 6:
             jax.tree.map(np.testing.assert_array_equal, lean, full)
         else:  # re-attached to z1 from 4.0 (6 away); without the attachment, no keypoint to enter

@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from aqm_mjx.agent.rules import (LEG_FIELDS, MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, keep_last_route,
-                                  reenters, redirect, replan)
+from aqm_mjx.agent.rules import (LEG_FIELDS, MAX_CUTS, MAX_LEGS, AgentConfig, agent_init, agent_step, follow,
+                                  keep_last_route, reenters, redirect, replan)
 from aqm_mjx.agent import planners
 from aqm_mjx.interface import Agent, Decide
 from aqm_mjx.progress import EVERY, tick
@@ -105,16 +105,20 @@ def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
         # or logged after the end
         z = enc(obs)
 
+        # d(s, target) once a step, for both the re-attachment's test and the step itself
+        followed = jax.vmap(lambda a, s: follow(d, graph, cfg, a, s))(agents, z)
+
         def step(attach):
             if cfg.cut_slack:  # EXTENSION: parallel cuts, each row at its own slack
-                return lambda: jax.vmap(lambda a, s, kp, p, e, c: agent_step(d, graph, cfg, a, s, kp, p, e, c, attach))(
-                    agents, z, kappa, patience, edges, inputs.cut_slack)
+                return lambda: jax.vmap(lambda a, s, kp, p, e, c, f: agent_step(d, graph, cfg, a, s, kp, p, e, c, attach,
+                                                                                 f))(
+                    agents, z, kappa, patience, edges, inputs.cut_slack, followed)
             # no row cuts in parallel (every row's slack is 0): the neighbourhoods are not computed
-            return lambda: jax.vmap(lambda a, s, kp, p, e: agent_step(d, graph, cfg, a, s, kp, p, e, 0.0, attach))(
-                agents, z, kappa, patience, edges)
+            return lambda: jax.vmap(lambda a, s, kp, p, e, f: agent_step(d, graph, cfg, a, s, kp, p, e, 0.0, attach, f))(
+                agents, z, kappa, patience, edges, followed)
 
         # the K distances of a re-attachment only in a step where some environment overran its start leg
-        needs = jax.vmap(lambda a, s, p: reenters(d, graph, cfg, a, s, p))(agents, z, patience)
+        needs = jax.vmap(lambda a, s, p, f: reenters(d, graph, cfg, a, s, p, f))(agents, z, patience, followed)
         stepped = jax.lax.cond(jnp.any(needs), step(True), step(False))
         # REPLAN where an edge was cut (batched over those environments), then take the next hop
         new = replan(freeze(~done, agents, stepped), slots)

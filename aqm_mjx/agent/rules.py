@@ -5,7 +5,7 @@ untraversable in the environment's own copy of the graph and replan (paper secti
 One control step (:func:`agent_step`, then :func:`replan` and :func:`redirect`; the rollout's
 ``make_decide`` calls them in this order) runs the paper's phases:
 
-1. follow the leg: the target keypoint is reached within ``switch_radius`` (:func:`_follow`);
+1. follow the leg: the target keypoint is reached within ``switch_radius`` (:func:`follow`);
 2. check the budget: the leg's clocks (:func:`_clock`) under the row's rule (:func:`overrun`:
    :func:`fixed_overrun`, the paper's, or :func:`stall_overrun`);
 3. prune: the overrun leg goes to ``inf`` in this environment's graph (:func:`_prune`);
@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -284,9 +284,10 @@ def overrun(patience: jax.Array, t: jax.Array, stall: jax.Array, budget: jax.Arr
     return jnp.where(patience > 0, stall_overrun(t, stall, budget), fixed_overrun(t, stall, budget))
 
 
-def _follow(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array) -> tuple:
+def follow(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array) -> tuple:
     """FOLLOW THE LEG: ``(reached, d_target)``: whether the target keypoint is within the switch
-    radius, and ``d(s, target)`` (the target is the goal when ``node`` is -1)."""
+    radius, and ``d(s, target)`` (the target is the goal when ``node`` is -1). Two distances: the
+    rollout computes them once a step and hands them to :func:`reenters` and :func:`agent_step`."""
     d_node = dist(s, graph.z[jnp.maximum(a.node, 0)])
     reached = (a.node >= 0) & (d_node <= cfg.switch_radius)
     return reached, jnp.where(a.node >= 0, d_node, dist(s, a.goal))
@@ -330,18 +331,19 @@ def _log_cut(a: AgentState, edge_over: jax.Array) -> jax.Array:
 
 
 def reenters(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
-             patience: jax.Array = 0.0) -> jax.Array:
+             patience: jax.Array = 0.0, followed: Optional[tuple] = None) -> jax.Array:
     """Whether :func:`agent_step` at ``s`` overruns a start leg, the one case in which it re-attaches
     from ``s`` (``K`` distances, where every other case costs two): the rollout computes that
-    attachment only in the steps where some environment of the batch needs it (bool ``[]``)."""
-    reached, d_target = _follow(dist, graph, cfg, a, s)
+    attachment only in the steps where some environment of the batch needs it (bool ``[]``).
+    ``followed``: :func:`follow`'s result at ``s``, when the caller has it."""
+    reached, d_target = follow(dist, graph, cfg, a, s) if followed is None else followed
     t, _, stall, _ = _clock(a, d_target, cfg.progress)
     return ~reached & overrun(patience, t, stall, a.budget) & (leg_kind(a.prev, a.node) == LEG_START)
 
 
 def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s: jax.Array,
                kappa: jax.Array, patience: jax.Array = 0.0, edges_only: jax.Array = False,
-               cut_slack=None, attach: bool = True) -> AgentState:
+               cut_slack=None, attach: bool = True, followed: Optional[tuple] = None) -> AgentState:
     """One environment's control step of the agent for the current latent ``s [L]``, in the paper's
     phases: follow the leg, check its budget, prune an overrun leg, take the next leg.
 
@@ -352,12 +354,12 @@ def agent_step(dist: Callable, graph: Graph, cfg: AgentConfig, a: AgentState, s:
     (``cfg.progress`` is its progress threshold); ``edges_only`` budgets keypoint edges alone;
     ``cut_slack`` (default ``cfg.cut_slack``) sets the parallel cuts. ``attach=False`` (static) skips
     the re-attachment's ``K`` distances: for a step in which :func:`reenters` is False, where the
-    result is the same.
+    result is the same. ``followed``: :func:`follow`'s result at ``s`` (computed here when None).
     """
     cut_slack = cfg.cut_slack if cut_slack is None else cut_slack
     kind = leg_kind(a.prev, a.node)
     # 1. FOLLOW THE LEG: a reached keypoint hands over to the next hop of the best path from it
-    reached, d_target = _follow(dist, graph, cfg, a, s)
+    reached, d_target = follow(dist, graph, cfg, a, s) if followed is None else followed
     hop, hop_prev, hop_budget, hop_d = _next_leg(a, jnp.maximum(a.node, 0), kappa, patience, edges_only)
     # 2. CHECK THE BUDGET under the row's rule
     t, best, stall, max_stall = _clock(a, d_target, cfg.progress)
