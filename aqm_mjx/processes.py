@@ -135,11 +135,15 @@ def barrier(name: str) -> None:
 
 def lost(what: str, e: BaseException) -> RuntimeError:
     """One line for a collective that failed because a partner ended (XLA's and gloo's long status
-    text cut to its first 300 characters), saying what this process was doing."""
+    text cut to its first 300 characters), saying what this process was doing and, of two, which
+    partner it lost. With more, gloo's error does not say which ended (the coordination service
+    learns it only at its heartbeat timeout, tens of seconds later): the line says "a partner"."""
     import jax  # pylint: disable=import-outside-toplevel
 
-    return RuntimeError(f'process {jax.process_index()} of {jax.process_count()} lost the others while {what} '
-                        f'({" ".join(str(e).split())[:300]}); run the same command again on every process to resume')
+    me, n = jax.process_index(), jax.process_count()
+    other = f'process {1 - me}' if n == 2 else 'a partner'
+    return RuntimeError(f'process {me} of {n} lost {other} while {what} ({" ".join(str(e).split())[:300]}); run the '
+                        'same command again on every process to resume')
 
 
 def gather(tree, what: str):

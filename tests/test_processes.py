@@ -229,7 +229,7 @@ def test_train_over_two_processes_is_one_run_and_resumes_after_a_kill(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     two = str(tmp_path / 'two')
     line, steps = _kill_second_at(_launch(argv, two, free_port()), os.path.join(two, 'checkpoints', '200'))
-    assert 'process 0 of 2 lost the others' in line, line
+    assert 'process 0 of 2 lost process 1 while running the updates' in line, line
     assert max(steps) < 400, steps  # killed mid-training
     assert not [n for n in os.listdir(os.path.join(two, 'checkpoints')) if 'tmp' in n]  # no half-written checkpoint
 
@@ -296,3 +296,22 @@ def test_collect_over_two_processes_writes_the_one_process_dataset(tmp_path, phy
         assert sorted(got) == sorted(want)
         for k in want:
             np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+
+
+def test_a_collection_whose_partner_dies_ends_with_one_line_and_writes_nothing(tmp_path):
+    """Process 1 killed once it has joined: process 0 ends at its next gather with one line naming the
+    lost partner and the chunks, exit code 2, and no dataset file exists."""
+    argv = ['collect', '--env', 'pointmaze-medium', '--style', 'stitch', '--episodes', '200', '--steps', '200',
+            '--batch', '4', '--physics', 'mujoco']
+    out = str(tmp_path / 'pm.npz')
+    procs = _launch(argv, out, free_port())
+    for ln in procs[1].stderr:  # the partner has joined the run (and made its collectives' connections)
+        if 'processes joined' in ln:
+            break
+    procs[1].kill()
+    procs[1].communicate()
+    _, err = procs[0].communicate(timeout=300)
+    lines = [ln for ln in err.splitlines() if ln.startswith('aqm-mjx')]
+    assert procs[0].returncode == 2 and len(lines) == 1, err[-3000:]
+    assert 'process 0 of 2 lost process 1 while collecting chunks' in lines[0], lines
+    assert not any(os.path.exists(str(tmp_path / f)) for f in ('pm.npz', 'pm-val.npz', 'pm.json', 'pm.png'))

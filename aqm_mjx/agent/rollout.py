@@ -110,12 +110,11 @@ def make_decide(agent: Agent, cfg: AgentConfig) -> Decide:
 
         def step(attach):
             if cfg.cut_slack:  # EXTENSION: parallel cuts, each row at its own slack
-                return lambda: jax.vmap(lambda a, s, kp, p, e, c, f: agent_step(d, graph, cfg, a, s, kp, p, e, c, attach,
-                                                                                 f))(
-                    agents, z, kappa, patience, edges, inputs.cut_slack, followed)
+                one = lambda a, s, kp, p, e, c, f: agent_step(d, graph, cfg, a, s, kp, p, e, c, attach, f)  # noqa: E731
+                return lambda: jax.vmap(one)(agents, z, kappa, patience, edges, inputs.cut_slack, followed)
             # no row cuts in parallel (every row's slack is 0): the neighbourhoods are not computed
-            return lambda: jax.vmap(lambda a, s, kp, p, e, f: agent_step(d, graph, cfg, a, s, kp, p, e, 0.0, attach, f))(
-                agents, z, kappa, patience, edges, followed)
+            one = lambda a, s, kp, p, e, f: agent_step(d, graph, cfg, a, s, kp, p, e, 0.0, attach, f)  # noqa: E731
+            return lambda: jax.vmap(one)(agents, z, kappa, patience, edges, followed)
 
         # the K distances of a re-attachment only in a step where some environment overran its start leg
         needs = jax.vmap(lambda a, s, p, f: reenters(d, graph, cfg, a, s, p, f))(agents, z, patience, followed)

@@ -442,26 +442,29 @@ def collect(cfg: CollectConfig, physics: Optional[dict] = None, progress: bool =
     rounds = -(-len(chunks) // count)  # several processes: in round r, process p runs chunk r * count + p
     t0 = time.perf_counter()
     first_chunk_s = None  # the first call compiles, then runs one chunk
-    for r in range(rounds):
-        firsts = chunks[r * count:(r + 1) * count]
-        sizes = [min(batch, total - f) for f in firsts]
-        mine = firsts[me] if me < len(firsts) else None
-        ticks.start(sum(sizes), t)  # the round's episodes, moved on as this process's chunk runs
-        out = _chunk(run, base, mine, batch, total, cfg.physics == 'mjx', env, t)
-        ticks.finish()
-        if first_chunk_s is None:
-            first_chunk_s = time.perf_counter() - t0
-        got = processes.gather(out, f'collecting chunks {r * count + 1}-{r * count + len(firsts)} of {len(chunks)}')
-        for first, m, o in zip(firsts, sizes, range(len(firsts))):
-            rows = slice(first * t, (first + m) * t)
-            for k in buf:
-                buf[k][rows] = got[k][o, :m].reshape(m * t, -1)
-            reached[first:first + m] = got['goals_reached'][o, :m]
-            flipped[first:first + m] = ~got['upright'][o, :m]
+    try:
+        for r in range(rounds):
+            firsts = chunks[r * count:(r + 1) * count]
+            sizes = [min(batch, total - f) for f in firsts]
+            mine = firsts[me] if me < len(firsts) else None
+            ticks.start(sum(sizes), t)  # the round's episodes, moved on as this process's chunk runs
+            out = _chunk(run, base, mine, batch, total, cfg.physics == 'mjx', env, t)
+            ticks.finish()
+            if first_chunk_s is None:
+                first_chunk_s = time.perf_counter() - t0
+            what = f'collecting chunks {r * count + 1}-{r * count + len(firsts)} of {len(chunks)}'
+            got = processes.gather(out, what)  # every process's chunk of this round, on every process
+            for first, m, o in zip(firsts, sizes, range(len(firsts))):
+                rows = slice(first * t, (first + m) * t)
+                for k in buf:
+                    buf[k][rows] = got[k][o, :m].reshape(m * t, -1)
+                reached[first:first + m] = got['goals_reached'][o, :m]
+                flipped[first:first + m] = ~got['upright'][o, :m]
+            if bar is not None:
+                bar.set_postfix(transitions=(firsts[-1] + sizes[-1]) * t)
+    finally:  # an error (a partner lost) starts on a line of its own
         if bar is not None:
-            bar.set_postfix(transitions=(firsts[-1] + sizes[-1]) * t)
-    if bar is not None:
-        bar.close()
+            bar.close()
     wall = time.perf_counter() - t0
     terminals = np.zeros(n, bool)
     terminals[t - 1::t] = True
