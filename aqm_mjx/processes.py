@@ -117,7 +117,7 @@ def writer() -> bool:
 
 def barrier(name: str) -> None:
     """Wait until every process of the run reaches the barrier ``name`` (nothing with one process).
-    A partner that ended meanwhile is a :class:`RuntimeError` naming the barrier and the error."""
+    A partner that ended meanwhile is :func:`lost`'s :class:`RuntimeError`, naming the barrier."""
     import jax  # pylint: disable=import-outside-toplevel
 
     if jax.process_count() == 1:
@@ -127,10 +127,7 @@ def barrier(name: str) -> None:
     try:
         multihost_utils.sync_global_devices(name)
     except Exception as e:  # pylint: disable=broad-except  (XLA's and gloo's errors carry long status text)
-        first = ' '.join(str(e).split())[:300]
-        raise RuntimeError(f'process {jax.process_index()} of {jax.process_count()} waited for the others at '
-                           f'{name!r}, and one of them ended ({first}); run the same command again on every '
-                           'process to resume') from None
+        raise lost(f'waiting for the others at {name!r}', e) from None
 
 
 def lost(what: str, e: BaseException) -> RuntimeError:
