@@ -138,13 +138,14 @@ def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, vari
         log(f'warning: {cfg.map.max_keypoints} keypoints did not cover the candidates at delta {cfg.map.delta}; '
             'raise --max-keypoints or --delta')
     what = 'nodes of its own map' if agent.mapper is not None else f'keypoints at delta {cfg.map.delta}'
+    mapped = 'no map' if graph is None else f'{m["keypoints"]} {what} ({m["seconds"]:.1f} s)'
     n_agents = 1 + len(cfg.protocol.ablations) if agent.prunes else 1
     if cfg.protocol.ablations and not agent.prunes:
         who = trained.method if cfg.agent.planner == 'own' else f'{trained.method} under planner {cfg.agent.planner}'
         log(f'note: {who} does not prune, so its own agent runs alone; the ablations '
             f'({", ".join(cfg.protocol.ablations)}) are rows of pruning agents (AQM, and QRL under its planner)')
-    log(f'{env.name}, {trained.method} {trained.config.preset} preset at step {trained.step}: {m["keypoints"]} '
-        f'{what} ({m["seconds"]:.1f} s); {n_agents} agents x {len(variants)} layouts x '
+    log(f'{env.name}, {trained.method} {trained.config.preset} preset at step {trained.step}: {mapped}; '
+        f'{n_agents} agents x {len(variants)} layouts x '
         f'{len(cfg.protocol.tasks) or env.num_tasks} tasks x {cfg.protocol.episodes} episodes on '
         f'{jax.device_count()} device(s)')
     owned = programs is None  # the calibration pass and the evaluation share one compiled chunk

@@ -208,6 +208,8 @@ def test_evaluate_runs_a_method_under_each_planner_on_the_same_episodes(tmp_path
         res, rep = assess.evaluate_checkpoint(model, out=str(tmp_path / planner), log=lines.append,
                                               overrides=over + [f'agent.planner={planner}'])
         runs[planner] = res
+        stage = [str(ln) for ln in lines if ' preset at step ' in str(ln)]
+        assert len(stage) == 1 and (': no map;' in stage[0]) == (planner == 'flat'), stage
         saved = json.load(open(os.path.join(tmp_path, planner, 'results.json')))
         assert saved['config']['agent']['planner'] == planner
     assert runs['flat'].agents == ['flat'] and runs['ttgs'].agents == ['planner']
