@@ -130,8 +130,9 @@ def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, vari
         graph, m = method_map(agent, data, cfg.map, k_map)
     else:  # a flat method: no quasimetric, no map
         graph, m = None, dict(keypoints=0, overflow=False, seconds=0.0)
-        log(f'{trained.method} runs flat: no map, its controller aimed at the goal'
-            + ('' if cfg.agent.planner == 'flat' else ' (it has no quasimetric)'))
+        why = ('' if cfg.agent.planner == 'flat' else ' (it has no distance to plan on)'
+               if trained.learner.distance is None else ' (its own rule; --planner aqm|ttgs plans on its distance)')
+        log(f'{trained.method} runs flat: no map, its controller aimed at the goal{why}')
     if m['overflow'] and agent.mapper is not None:
         log(f'warning: {trained.method} needed more map nodes than its max_nodes; some states joined their nearest')
     elif m['overflow']:

@@ -238,6 +238,9 @@ def test_compare_planners_adds_each_method_under_another_planner_on_the_same_epi
                           planners=['flat', 'aqm'], log=logs.append)
     # gcbc has no value; gcivl runs flat on its own, so only gcivl+aqm is new (with its ablation rows)
     assert 'gcbc: no value to plan with, so no gcbc+aqm row' in logs
+    # gcivl's own row is flat by its own rule, not for want of a distance: the line says which
+    assert ('gcivl runs flat: no map, its controller aimed at the goal (its own rule; --planner aqm|ttgs plans on '
+            'its distance)') in logs
     assert [k for k in res['rows'] if not k.startswith('gcivl+aqm/')] == ['gcbc', 'gcivl', 'gcivl+aqm']
     assert 'gcivl+aqm/flat' in res['rows'] and res['configs']['gcivl+aqm']['agent']['planner'] == 'aqm'
     # the same checkpoints: GCIVL's flat row under AQM's map is GCIVL's own row, seed for seed
