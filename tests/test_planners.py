@@ -270,3 +270,32 @@ def test_a_dense_map_is_drawn_with_its_edges_within_tau_and_a_keypoint_graph_who
     sparse_w = jnp.where(d == 1.0, d, jnp.inf).at[0, 5].set(9.0)  # a keypoint graph: one long joining edge kept
     sparse = dense.replace(w=sparse_w)
     assert len(drawn_edges(sparse)) == 11
+
+
+def test_distance_profile_reads_a_quasimetric_along_the_data_and_refuses_a_flat_method(tmp_path, point_model):
+    """benchmarks/experiments/distance_profile.py on a small QRL model: every offset's quantiles in order,
+    d(s, s) = 0 exactly (an IQE), so at k = 0 every pair is 'not above d0'; on GCBC (no distance) one line."""
+    import json
+    import subprocess
+    import sys
+
+    qrl, gcbc = point_model('qrl', 50), point_model('gcbc', 50)
+    data = str(tmp_path / 'pointmaze-medium-navigate.npz')
+    script = 'benchmarks/experiments/distance_profile.py'
+    out = tmp_path / 'profile.json'
+    run = subprocess.run([sys.executable, script, '--dataset', data, '--checkpoint', qrl, '--offsets', '0', '1', '5',
+                          '10', '--pairs', '64', '--out', str(out)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    (row,) = json.load(open(out))['rows']
+    assert row['method'] == 'qrl' and row['pairs'] == 64 and list(row['offsets']) == ['0', '1', '5', '10']
+    assert row['offsets']['0'] == dict(q10=0.0, q50=0.0, q90=0.0, not_above_d0=1.0)
+    for q in row['offsets'].values():
+        assert q['q10'] <= q['q50'] <= q['q90'] and 0.0 <= q['not_above_d0'] <= 1.0
+    flat = subprocess.run([sys.executable, script, '--dataset', data, '--checkpoint', gcbc, '--offsets', '0', '1'],
+                          capture_output=True,
+                          text=True, timeout=300)
+    assert flat.returncode != 0
+    assert flat.stderr.strip().splitlines()[-1] == f'distance_profile: {gcbc}: gcbc has no distance in steps (it runs flat): nothing to profile'
+    far = subprocess.run([sys.executable, script, '--dataset', data, '--checkpoint', qrl, '--offsets', '0', '60'],
+                         capture_output=True, text=True, timeout=300)
+    assert far.stderr.strip().splitlines()[-1] == 'distance_profile: the data hold no trajectory of 61 states: lower --offsets'

@@ -209,7 +209,8 @@ def distance_check(agent: Agent, observations, terminals, key: jax.Array, name: 
                    pairs: int = 256) -> dict | None:
     """Check a distance before a map is built on it: along the data's own trajectories, ``d`` must
     grow with the steps between two states (``median d(s_t, s_{t+25}) > median d(s_t, s_{t+1})``;
-    a value of the wrong sign, or one that learned nothing, fails) and read 25 steps as steps
+    a value of the wrong sign, one that learned nothing, or one too coarse to resolve 25 steps fails) and
+    read 25 steps as steps
     (the median within a factor 10 of 25; a distance in other units fails). ``pairs`` states ``s_t``
     with 25 more states in their trajectory are drawn with ``key``.
 
@@ -230,7 +231,8 @@ def distance_check(agent: Agent, observations, terminals, key: jax.Array, name: 
                f'{out["d25"]:.3g}, on {len(t)} pairs of the data')
     if not np.isfinite(out['d25']) or not out['d25'] > out['d1']:
         raise ValueError(f'the distance of {name} does not grow along the data\'s trajectories ({numbers}): a value of '
-                         'the wrong sign, or one that learned nothing; no map is built on it '
+                         'the wrong sign, one that learned nothing, or one too coarse to tell 1 step from 25 (a contrastive '
+                         'critic at small scale: benchmarks/experiments/distance_profile.py); no map is built on it '
                          '(--set agent.distance_check=false to build one anyway)')
     if not CHECK_OFFSET / CHECK_SCALE <= out['d25'] <= CHECK_OFFSET * CHECK_SCALE:
         raise ValueError(f'the distance of {name} reads {CHECK_OFFSET} steps of data as {out["d25"]:.3g} ({numbers}): '

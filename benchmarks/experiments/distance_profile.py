@@ -1,0 +1,98 @@
+"""A method's distance along the data: the quantiles of ``d(s_t, s_{t+k})`` in control steps for several
+offsets ``k``, on states drawn from the dataset's own trajectories, for each checkpoint given. What a
+planner (``--planner aqm|ttgs``) builds its map on, read over the whole range the map uses: AQM's
+keypoints at delta 8 and TTGS's tau 24 need the short range (k of 1-25) to grow, its budgets and
+searches the long range. ``mapping.build.distance_check`` tests two of these offsets (1 and 25)
+before a map is built; this prints the profile behind that test.
+
+    python benchmarks/experiments/distance_profile.py --dataset runs/antmaze-medium/data/antmaze-medium-navigate.npz \
+        --checkpoint runs/nav_crl/train/crl/seed_1 --checkpoint runs/nav_qrl/train/qrl/seed_1 \
+        --out benchmarks/results/planners_medium_navigate/distance_profile.json
+
+Each row: the checkpoint, its method, and per offset k the 10%, 50% and 90% quantiles of d and the
+share of pairs where d(s_t, s_{t+k}) <= d(s_t, s_t) (a distance that does not tell s_{t+k} from s_t).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import jax
+import numpy as np
+
+from aqm_mjx.data import dataset as ds_io
+from aqm_mjx.learn import fit
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
+from _report import finish  # noqa: E402
+
+OFFSETS = (0, 1, 2, 5, 10, 25, 50, 100, 200)
+
+
+def starts(terminals: np.ndarray, reach: int, pairs: int, seed: int) -> np.ndarray:
+    """``pairs`` indices ``t [P]`` whose trajectory holds ``reach`` more states, drawn without replacement."""
+    ends = ds_io.trajectory_ends(np.asarray(terminals))
+    ok = np.flatnonzero(ends - np.arange(len(ends)) >= reach)
+    if not len(ok):
+        raise ValueError(f'the data hold no trajectory of {reach + 1} states: lower --offsets')
+    return np.random.default_rng(seed).choice(ok, min(pairs, len(ok)), replace=False)
+
+
+def profile(trained: fit.Trained, obs: np.ndarray, t: np.ndarray, offsets) -> dict:
+    """``{k: {'q10', 'q50', 'q90', 'not_above_d0'}}`` of the method's ``d(s_t, s_{t+k})`` over the starts ``t``."""
+    distance = trained.learner.distance
+    if distance is None:
+        raise ValueError(f'{trained.method} has no distance in steps (it runs flat): nothing to profile')
+    aux = trained.params
+    enc = jax.jit(jax.vmap(lambda o: distance.encode(aux, o)))
+    dist = jax.jit(jax.vmap(lambda x, y: distance.dist(aux, x, y)))
+    z0 = enc(obs[t])
+    d0 = np.asarray(dist(z0, z0))
+    out = {}
+    for k in offsets:
+        d = np.asarray(dist(z0, enc(obs[t + k])))
+        q10, q50, q90 = (float(x) for x in np.quantile(d, [0.1, 0.5, 0.9]))
+        out[int(k)] = dict(q10=q10, q50=q50, q90=q90, not_above_d0=float(np.mean(d <= d0)))
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument('--checkpoint', action='append', required=True, help='a trained run folder (repeat for several)')
+    p.add_argument('--dataset', required=True, help='the .npz whose trajectories the pairs come from')
+    p.add_argument('--offsets', type=int, nargs='+', default=list(OFFSETS))
+    p.add_argument('--pairs', type=int, default=256)
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--out')
+    a = p.parse_args()
+    if min(a.offsets) < 0:
+        p.error('--offsets must be >= 0')
+    data = ds_io.read_ogbench(a.dataset)
+    obs = np.asarray(data['observations'], np.float32)
+    try:
+        t = starts(data['terminals'], max(a.offsets), a.pairs, a.seed)
+    except ValueError as e:
+        sys.exit(f'distance_profile: {e}')
+    rows = []
+    print(f'{len(t)} pairs from {a.dataset}; d(s_t, s_t+k) in steps: 10% / median / 90%, and the share with d <= d(s_t, s_t)')
+    print(f'{"checkpoint":44s} {"method":6s} ' + ' '.join(f'{"k=" + str(k):>18s}' for k in a.offsets))
+    for ck in a.checkpoint:
+        trained = fit.load(ck, log=lambda *_: None)
+        t0 = time.perf_counter()
+        try:
+            prof = profile(trained, obs, t, a.offsets)
+        except ValueError as e:
+            sys.exit(f'distance_profile: {ck}: {e}')
+        cells = ' '.join(f'{r["q10"]:5.0f}/{r["q50"]:5.0f}/{r["q90"]:5.0f}'.rjust(18) for r in prof.values())
+        shares = ' '.join(f'{r["not_above_d0"]:18.2f}' for r in prof.values())
+        print(f'{ck[-44:]:44s} {trained.method:6s} {cells}\n{"":44s} {"<=d0":6s} {shares}')
+        rows.append(dict(checkpoint=ck, method=trained.method, step=trained.step, pairs=len(t),
+                         seconds=round(time.perf_counter() - t0, 2), offsets={str(k): v for k, v in prof.items()}))
+    finish(rows, a.out)
+
+
+if __name__ == '__main__':
+    main()
