@@ -292,8 +292,7 @@ def test_distance_profile_reads_a_quasimetric_along_the_data_and_refuses_a_flat_
     for q in row['offsets'].values():
         assert q['q10'] <= q['q50'] <= q['q90'] and 0.0 <= q['not_above_d0'] <= 1.0
     flat = subprocess.run([sys.executable, script, '--dataset', data, '--checkpoint', gcbc, '--offsets', '0', '1'],
-                          capture_output=True,
-                          text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300)
     assert flat.returncode != 0
     assert flat.stderr.strip().splitlines()[-1] == f'distance_profile: {gcbc}: gcbc has no distance in steps (it runs flat): nothing to profile'
     far = subprocess.run([sys.executable, script, '--dataset', data, '--checkpoint', qrl, '--offsets', '0', '60'],

@@ -205,30 +205,41 @@ CHECK_OFFSET = 25  # steps of data the distance check compares with one step
 CHECK_SCALE = 10.0  # how far from CHECK_OFFSET the median may read before the units are called wrong
 
 
-def distance_check(agent: Agent, observations, terminals, key: jax.Array, name: str = 'the method',
-                   pairs: int = 256) -> dict | None:
-    """Check a distance before a map is built on it: along the data's own trajectories, ``d`` must
-    grow with the steps between two states (``median d(s_t, s_{t+25}) > median d(s_t, s_{t+1})``;
-    a value of the wrong sign, one that learned nothing, or one too coarse to resolve 25 steps fails) and
-    read 25 steps as steps
-    (the median within a factor 10 of 25; a distance in other units fails). ``pairs`` states ``s_t``
-    with 25 more states in their trajectory are drawn with ``key``.
-
-    Returns ``{'d0', 'd1', 'd25'}`` (the medians of d(s, s), d(s_t, s_{t+1}), d(s_t, s_{t+25})), or
-    None when the data hold no trajectory that long (a shipped checkpoint's map states: nothing to
-    check on); raises a one-line ValueError naming ``name`` and the numbers when either test fails."""
+def distances_along(agent: Agent, observations, terminals, key: jax.Array, offsets, pairs: int = 256) -> dict | None:
+    """A distance along the data's own trajectories: ``{k: d(s_t, s_{t+k}) [P]}`` for each offset ``k``
+    (``k = 0``: ``d(s_t, s_t)``), over ``P = min(pairs, ...)`` states ``s_t`` drawn with ``key`` among those
+    with ``max(offsets)`` more states in their trajectory; None when the data hold no trajectory that long.
+    What :func:`distance_check` tests and ``benchmarks/experiments/distance_profile.py`` prints."""
     obs = np.asarray(observations, np.float32)
     ends = trajectory_ends(np.asarray(terminals))
-    ok = np.flatnonzero(ends - np.arange(len(obs)) >= CHECK_OFFSET)
+    ok = np.flatnonzero(ends - np.arange(len(obs)) >= max(offsets))
     if not len(ok):
         return None
     t = np.asarray(jax.random.choice(key, jnp.asarray(ok), (min(pairs, len(ok)),), replace=False))
     enc = jax.jit(jax.vmap(lambda o: agent.encode(agent.aux, o)))
     dist = jax.jit(jax.vmap(lambda x, y: agent.dist(agent.aux, x, y)))
-    z0, z1, z25 = enc(obs[t]), enc(obs[t + 1]), enc(obs[t + CHECK_OFFSET])
-    out = {k: float(np.median(np.asarray(dist(z0, z)))) for k, z in (('d0', z0), ('d1', z1), ('d25', z25))}
+    z0 = enc(obs[t])
+    return {k: np.asarray(dist(z0, z0 if k == 0 else enc(obs[t + k]))) for k in offsets}
+
+
+def distance_check(agent: Agent, observations, terminals, key: jax.Array, name: str = 'the method',
+                   pairs: int = 256) -> dict | None:
+    """Check a distance before a map is built on it: along the data's own trajectories, ``d`` must
+    grow with the steps between two states (``median d(s_t, s_{t+25}) > median d(s_t, s_{t+1})``;
+    a value of the wrong sign, one that learned nothing, or one too coarse to resolve 25 steps fails)
+    and read 25 steps as steps (the median within a factor 10 of 25; a distance in other units fails).
+    ``pairs`` states ``s_t`` with 25 more states in their trajectory are drawn with ``key``
+    (:func:`distances_along`).
+
+    Returns ``{'d0', 'd1', 'd25'}`` (the medians of d(s, s), d(s_t, s_{t+1}), d(s_t, s_{t+25})), or
+    None when the data hold no trajectory that long (a shipped checkpoint's map states: nothing to
+    check on); raises a one-line ValueError naming ``name`` and the numbers when either test fails."""
+    d = distances_along(agent, observations, terminals, key, (0, 1, CHECK_OFFSET), pairs)
+    if d is None:
+        return None
+    out = {'d0': float(np.median(d[0])), 'd1': float(np.median(d[1])), 'd25': float(np.median(d[CHECK_OFFSET]))}
     numbers = (f'median d(s, s) {out["d0"]:.3g}, over 1 step {out["d1"]:.3g}, over {CHECK_OFFSET} steps '
-               f'{out["d25"]:.3g}, on {len(t)} pairs of the data')
+               f'{out["d25"]:.3g}, on {len(d[0])} pairs of the data')
     if not np.isfinite(out['d25']) or not out['d25'] > out['d1']:
         raise ValueError(f'the distance of {name} does not grow along the data\'s trajectories ({numbers}): a value of '
                          'the wrong sign, one that learned nothing, or one too coarse to tell 1 step from 25 (a contrastive '

@@ -23,8 +23,10 @@ import time
 import jax
 import numpy as np
 
+from aqm_mjx.agent import planners
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.learn import fit
+from aqm_mjx.mapping.build import distances_along
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
 from _report import finish  # noqa: E402
@@ -32,31 +34,22 @@ from _report import finish  # noqa: E402
 OFFSETS = (0, 1, 2, 5, 10, 25, 50, 100, 200)
 
 
-def starts(terminals: np.ndarray, reach: int, pairs: int, seed: int) -> np.ndarray:
-    """``pairs`` indices ``t [P]`` whose trajectory holds ``reach`` more states, drawn without replacement."""
-    ends = ds_io.trajectory_ends(np.asarray(terminals))
-    ok = np.flatnonzero(ends - np.arange(len(ends)) >= reach)
-    if not len(ok):
-        raise ValueError(f'the data hold no trajectory of {reach + 1} states: lower --offsets')
-    return np.random.default_rng(seed).choice(ok, min(pairs, len(ok)), replace=False)
-
-
-def profile(trained: fit.Trained, obs: np.ndarray, t: np.ndarray, offsets) -> dict:
-    """``{k: {'q10', 'q50', 'q90', 'not_above_d0'}}`` of the method's ``d(s_t, s_{t+k})`` over the starts ``t``."""
-    distance = trained.learner.distance
-    if distance is None:
+def profile(trained: fit.Trained, obs: np.ndarray, terminals: np.ndarray, offsets, pairs: int,
+            seed: int) -> tuple[dict, int] | None:
+    """``({k: {'q10', 'q50', 'q90', 'not_above_d0'}}, P)``: the method's ``d(s_t, s_{t+k})`` over the ``P``
+    pairs :func:`aqm_mjx.mapping.build.distances_along` draws with ``PRNGKey(seed)`` (the same for every
+    checkpoint); None when the data hold no trajectory long enough."""
+    if trained.learner.distance is None:
         raise ValueError(f'{trained.method} has no distance in steps (it runs flat): nothing to profile')
-    aux = trained.params
-    enc = jax.jit(jax.vmap(lambda o: distance.encode(aux, o)))
-    dist = jax.jit(jax.vmap(lambda x, y: distance.dist(aux, x, y)))
-    z0 = enc(obs[t])
-    d0 = np.asarray(dist(z0, z0))
+    agent = planners.around(trained.agent, trained.learner.distance, 'aqm', trained.method)
+    d = distances_along(agent, obs, terminals, jax.random.PRNGKey(seed), sorted({0, *offsets}), pairs)
+    if d is None:
+        return None
     out = {}
     for k in offsets:
-        d = np.asarray(dist(z0, enc(obs[t + k])))
-        q10, q50, q90 = (float(x) for x in np.quantile(d, [0.1, 0.5, 0.9]))
-        out[int(k)] = dict(q10=q10, q50=q50, q90=q90, not_above_d0=float(np.mean(d <= d0)))
-    return out
+        q10, q50, q90 = (float(x) for x in np.quantile(d[k], [0.1, 0.5, 0.9]))
+        out[int(k)] = dict(q10=q10, q50=q50, q90=q90, not_above_d0=float(np.mean(d[k] <= d[0])))
+    return out, len(d[0])
 
 
 def main() -> None:
@@ -72,24 +65,23 @@ def main() -> None:
         p.error('--offsets must be >= 0')
     data = ds_io.read_ogbench(a.dataset)
     obs = np.asarray(data['observations'], np.float32)
-    try:
-        t = starts(data['terminals'], max(a.offsets), a.pairs, a.seed)
-    except ValueError as e:
-        sys.exit(f'distance_profile: {e}')
     rows = []
-    print(f'{len(t)} pairs from {a.dataset}; d(s_t, s_t+k) in steps: 10% / median / 90%, and the share with d <= d(s_t, s_t)')
+    print(f'{a.dataset}; d(s_t, s_t+k) in steps: 10% / median / 90%, and the share with d <= d(s_t, s_t)')
     print(f'{"checkpoint":44s} {"method":6s} ' + ' '.join(f'{"k=" + str(k):>18s}' for k in a.offsets))
     for ck in a.checkpoint:
         trained = fit.load(ck, log=lambda *_: None)
         t0 = time.perf_counter()
         try:
-            prof = profile(trained, obs, t, a.offsets)
+            found = profile(trained, obs, data['terminals'], a.offsets, a.pairs, a.seed)
         except ValueError as e:
             sys.exit(f'distance_profile: {ck}: {e}')
+        if found is None:
+            sys.exit(f'distance_profile: the data hold no trajectory of {max(a.offsets) + 1} states: lower --offsets')
+        prof, n = found
         cells = ' '.join(f'{r["q10"]:5.0f}/{r["q50"]:5.0f}/{r["q90"]:5.0f}'.rjust(18) for r in prof.values())
         shares = ' '.join(f'{r["not_above_d0"]:18.2f}' for r in prof.values())
         print(f'{ck[-44:]:44s} {trained.method:6s} {cells}\n{"":44s} {"<=d0":6s} {shares}')
-        rows.append(dict(checkpoint=ck, method=trained.method, step=trained.step, pairs=len(t),
+        rows.append(dict(checkpoint=ck, method=trained.method, step=trained.step, pairs=n,
                          seconds=round(time.perf_counter() - t0, 2), offsets={str(k): v for k, v in prof.items()}))
     finish(rows, a.out)
 
