@@ -271,3 +271,37 @@ def test_node_count_joins_earlier_rows_only_when_they_evaluated_the_same_episode
     with pytest.raises(ValueError, match='not a node_count.json'):
         path.write_text(json.dumps(dict(rows=[], args=args)))
         nc.earlier_rows(str(path), args)
+
+
+def test_pairwise_in_row_chunks_equals_the_whole_matrix_and_holds_a_chunk_of_activations():
+    """A distance that runs a network on each pair (as GCIVL's value on raw states does) gives the same
+    [K, M] matrix row-chunked as all at once, with K not a multiple of the chunk, and its compiled
+    program's temporary memory is a chunk's activations, not the K x M pairs' (at K = 2,048 and
+    a 1,536-wide layer the whole matrix at once asked for 25 GB)."""
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
+    width = 512
+    w1 = jax.random.normal(k1, (2 * 6, width)) / 4.0
+    w2 = jax.random.normal(k2, (width,)) / 20.0
+
+    def d(x, y):
+        return jnp.abs(jnp.tanh(jnp.concatenate([x, y]) @ w1) @ w2)
+
+    a = jax.random.normal(k3, (37, 6))
+    b = a[::-1][:29]
+    whole = jax.vmap(lambda x: jax.vmap(lambda y: d(x, y))(b))(a)
+    got = graph.pairwise(d, a, b, rows=8)
+    assert got.shape == (37, 29)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(whole), rtol=1e-6, atol=1e-6)
+    assert np.array_equal(np.asarray(graph.pairwise(d, a, b, rows=100)), np.asarray(graph.pairwise(d, a, b, rows=37)))
+
+    big = jax.random.normal(k3, (256, 6))
+    mem = {}
+    for name, fn in (('whole', lambda z: jax.vmap(lambda x: jax.vmap(lambda y: d(x, y))(z))(z)),
+                     ('rows', lambda z: graph.pairwise(d, z, z, rows=16))):
+        analysis = jax.jit(fn).lower(big).compile().memory_analysis()
+        if analysis is None:
+            pytest.skip('this backend reports no memory analysis')
+        mem[name] = analysis.temp_size_in_bytes
+    pairs_activations = 256 * 256 * width * 4  # the whole matrix's hidden layer, float32
+    assert mem['whole'] >= pairs_activations / 2, mem  # the reference does hold the K x M activations
+    assert mem['rows'] <= pairs_activations / 8, mem  # 16 rows of 256: 1/16 of them, with room

@@ -36,9 +36,12 @@ class Graph:
     tau: jax.Array
 
 
-def pairwise(dist: Dist, a: jax.Array, b: jax.Array) -> jax.Array:
-    """``d(a_i, b_j)``: ``a [K, D]``, ``b [M, D]`` -> ``[K, M]``."""
-    return jax.vmap(lambda x: jax.vmap(lambda y: dist(x, y))(b))(a)
+def pairwise(dist: Dist, a: jax.Array, b: jax.Array, rows: int = 64) -> jax.Array:
+    """``d(a_i, b_j)``: ``a [K, D]``, ``b [M, D]`` -> ``[K, M]``, ``rows`` rows of ``a`` at a time
+    (``lax.map``): a distance that runs a network on each pair (GCIVL's value on raw states) holds
+    ``rows x M`` evaluations' activations, not ``K x M`` (at K = 2,048 the whole matrix at once
+    asked for 25 GB)."""
+    return jax.lax.map(lambda x: jax.vmap(lambda y: dist(x, y))(b), a, batch_size=max(1, min(rows, a.shape[0])))
 
 
 def build_graph(dist: Dist, z: jax.Array, mask: jax.Array, delta: float,
