@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from aqm_mjx.mapping.graph import Graph
+from aqm_mjx.mapping.graph import Graph, pairwise
 
 PENALTY = 1000.0
 
@@ -36,11 +36,12 @@ def ttgs_map(encode, dist, aux, observations: jax.Array, key: jax.Array, nodes: 
     """``min(nodes, N)`` of ``observations [N, D]`` drawn uniformly without replacement (``key``), as a
     dense :class:`~aqm_mjx.mapping.graph.Graph` with :func:`soft_weights` (jittable; ``nodes``
     static). ``encode(aux, obs [D]) -> z``, ``dist(aux, z, z') -> steps``; the distances are
-    computed a row at a time (``lax.map``), so memory stays ``O(nodes)`` distance evaluations."""
+    computed a row at a time (:func:`~aqm_mjx.mapping.graph.pairwise` with ``rows=1``), so memory
+    stays ``O(nodes)`` distance evaluations."""
     n = observations.shape[0]
     k = min(int(nodes), n)
     rows = jax.random.permutation(key, n)[:k]
     obs = observations[rows]
     z = jax.vmap(lambda o: encode(aux, o))(obs)
-    d = jax.lax.map(lambda zi: jax.vmap(lambda zj: dist(aux, zi, zj))(z), z)
+    d = pairwise(lambda x, y: dist(aux, x, y), z, z, rows=1)
     return Graph(z=z, obs=obs, mask=jnp.ones((k,), bool), w=soft_weights(d, tau, penalty), tau=jnp.float32(tau))
