@@ -46,11 +46,8 @@ def _first_far(f: jax.Array, traj_end: jax.Array, i: jax.Array, way_steps, offse
 
 
 def _per_state(fn, n: int, chunk: int) -> jax.Array:
-    """``fn(i)`` for every state index, ``chunk`` at a time (``lax.map`` over vmapped chunks)."""
-    idx = jnp.arange(n, dtype=jnp.int32)
-    pad = (-n) % chunk
-    idx = jnp.concatenate([idx, jnp.full((pad,), n - 1, jnp.int32)]).reshape(-1, chunk)
-    return jax.lax.map(jax.vmap(fn), idx).reshape(-1)[:n]
+    """``fn(i)`` for every state index, ``chunk`` at a time (``lax.map`` with ``batch_size``)."""
+    return jax.lax.map(fn, jnp.arange(n, dtype=jnp.int32), batch_size=max(1, min(chunk, n)))
 
 
 def efficient_states(f: jax.Array, traj_end: jax.Array, way_steps: int, threshold: float, max_len: int,

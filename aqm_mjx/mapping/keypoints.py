@@ -49,15 +49,8 @@ def sym(dist: Dist) -> Dist:
 
 
 def _to_one(dist_sym: Dist, latents: jax.Array, valid: jax.Array, z: jax.Array, chunk: int) -> jax.Array:
-    """d_sym from every candidate to ``z``: ``[N]`` (inf where not valid), in chunks."""
-    n = latents.shape[0]
-    if n <= chunk:
-        d = jax.vmap(dist_sym, in_axes=(0, None))(latents, z)
-    else:
-        pad = (-n) % chunk
-        lat = jnp.concatenate([latents, jnp.zeros((pad,) + latents.shape[1:], latents.dtype)])
-        d = jax.lax.map(lambda c: jax.vmap(dist_sym, in_axes=(0, None))(c, z), lat.reshape((-1, chunk) + latents.shape[1:]))
-        d = d.reshape(-1)[:n]
+    """d_sym from every candidate to ``z``: ``[N]`` (inf where not valid), ``chunk`` at a time."""
+    d = jax.lax.map(lambda x: dist_sym(x, z), latents, batch_size=max(1, min(chunk, latents.shape[0])))
     return jnp.where(valid, d, jnp.inf)
 
 

@@ -10,19 +10,10 @@ import jax.numpy as jnp
 from flax import struct
 
 
-
-def map_rows(fn, x: jax.Array, chunk: int = 4096) -> jax.Array:
-    """``fn`` over the rows of ``x [N, D]``, ``chunk`` rows per call (``lax.map``, bounded memory):
-    ``fn([chunk, D]) -> [chunk, L]`` gives ``[N, L]`` (the last chunk zero-padded)."""
-    n, d = x.shape
-    pad = (-n) % chunk
-    chunks = jnp.concatenate([x, jnp.zeros((pad, d), x.dtype)]).reshape(-1, chunk, d)
-    return jax.lax.map(fn, chunks).reshape(n + pad, -1)[:n]
-
-
-def encode_all(encode: Callable, aux, observations: jax.Array) -> jax.Array:
-    """``encode(aux, obs [D]) -> [L]`` of every row of ``observations [N, D]``: ``[N, L]`` (:func:`map_rows`)."""
-    return map_rows(jax.vmap(lambda o: encode(aux, o)), observations)
+def encode_all(encode: Callable, aux, observations: jax.Array, chunk: int = 4096) -> jax.Array:
+    """``encode(aux, obs [D]) -> [L]`` of every row of ``observations [N, D]``: ``[N, L]``, ``chunk``
+    rows at a time (``lax.map`` with ``batch_size``: bounded memory)."""
+    return jax.lax.map(lambda o: encode(aux, o), observations, batch_size=max(1, min(chunk, observations.shape[0])))
 
 
 @struct.dataclass
