@@ -270,6 +270,13 @@ def test_a_dense_map_is_drawn_with_its_edges_within_tau_and_a_keypoint_graph_who
     sparse_w = jnp.where(d == 1.0, d, jnp.inf).at[0, 5].set(9.0)  # a keypoint graph: one long joining edge kept
     sparse = dense.replace(w=sparse_w)
     assert len(drawn_edges(sparse)) == 11
+    # fewer than half the pairs joined (a value that reads most pairs unreachable) but more than the limit:
+    # capped all the same, the shortest within tau
+    two = (d == 2.0) & (jnp.minimum(x[:, None], x[None]) < 2)  # 0-2 and 1-3 both ways: past tau 1.5
+    part = dense.replace(w=jnp.where((d == 1.0) | two, ttgs_nodes.soft_weights(d, 1.5), jnp.inf))  # 14 of 30 pairs
+    assert len(drawn_edges(part)) == 14  # under the limit: every one
+    assert len(drawn_edges(part, limit=12)) == 10  # over it: the 10 within tau
+    assert len(drawn_edges(part, limit=9)) == 9
 
 
 def test_distance_profile_reads_a_quasimetric_along_the_data_and_refuses_a_flat_method(tmp_path, point_model):
