@@ -27,6 +27,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from aqm_mjx.mapping.graph import Graph, components
+from aqm_mjx.mapping.keypoints import in_batches
 from aqm_mjx.mapping.states import encode_all
 
 
@@ -46,8 +47,8 @@ def _first_far(f: jax.Array, traj_end: jax.Array, i: jax.Array, way_steps, offse
 
 
 def _per_state(fn, n: int, chunk: int) -> jax.Array:
-    """``fn(i)`` for every state index, ``chunk`` at a time (``lax.map`` with ``batch_size``)."""
-    return jax.lax.map(fn, jnp.arange(n, dtype=jnp.int32), batch_size=max(1, min(chunk, n)))
+    """``fn(i)`` for every state index, ``chunk`` at a time (:func:`~aqm_mjx.mapping.keypoints.in_batches`)."""
+    return in_batches(fn, jnp.arange(n, dtype=jnp.int32), chunk)
 
 
 def efficient_states(f: jax.Array, traj_end: jax.Array, way_steps: int, threshold: float, max_len: int,

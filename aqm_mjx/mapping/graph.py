@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from aqm_mjx.mapping.keypoints import Dist, Keypoints
+from aqm_mjx.mapping.keypoints import Dist, Keypoints, in_batches
 
 
 @struct.dataclass
@@ -41,7 +41,7 @@ def pairwise(dist: Dist, a: jax.Array, b: jax.Array, rows: int = 64) -> jax.Arra
     (``lax.map``): a distance that runs a network on each pair (GCIVL's value on raw states) holds
     ``rows x M`` evaluations' activations, not ``K x M`` (at K = 2,048 the whole matrix at once
     asked for 25 GB)."""
-    return jax.lax.map(lambda x: jax.vmap(lambda y: dist(x, y))(b), a, batch_size=max(1, min(rows, a.shape[0])))
+    return in_batches(lambda x: jax.vmap(lambda y: dist(x, y))(b), a, rows)
 
 
 def build_graph(dist: Dist, z: jax.Array, mask: jax.Array, delta: float,

@@ -48,9 +48,16 @@ def sym(dist: Dist) -> Dist:
     return lambda x, y: jnp.maximum(dist(x, y), dist(y, x))
 
 
+def in_batches(fn: Callable, xs: jax.Array, size: int) -> jax.Array:
+    """``fn`` over the leading axis of ``xs``, ``size`` rows at a time (``lax.map`` with ``batch_size``,
+    clamped to ``[1, len(xs)]``): memory of one batch's evaluations, not all of them. The mapping's
+    chunked loops (keypoints, the graph's pairs, encoding, GAS's per-state searches) all run on it."""
+    return jax.lax.map(fn, xs, batch_size=max(1, min(size, xs.shape[0])))
+
+
 def _to_one(dist_sym: Dist, latents: jax.Array, valid: jax.Array, z: jax.Array, chunk: int) -> jax.Array:
     """d_sym from every candidate to ``z``: ``[N]`` (inf where not valid), ``chunk`` at a time."""
-    d = jax.lax.map(lambda x: dist_sym(x, z), latents, batch_size=max(1, min(chunk, latents.shape[0])))
+    d = in_batches(lambda x: dist_sym(x, z), latents, chunk)
     return jnp.where(valid, d, jnp.inf)
 
 

@@ -9,11 +9,13 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from aqm_mjx.mapping.keypoints import in_batches
+
 
 def encode_all(encode: Callable, aux, observations: jax.Array, chunk: int = 4096) -> jax.Array:
     """``encode(aux, obs [D]) -> [L]`` of every row of ``observations [N, D]``: ``[N, L]``, ``chunk``
-    rows at a time (``lax.map`` with ``batch_size``: bounded memory)."""
-    return jax.lax.map(lambda o: encode(aux, o), observations, batch_size=max(1, min(chunk, observations.shape[0])))
+    rows at a time (:func:`~aqm_mjx.mapping.keypoints.in_batches`: bounded memory)."""
+    return in_batches(lambda o: encode(aux, o), observations, chunk)
 
 
 @struct.dataclass
