@@ -33,13 +33,18 @@ from aqm_mjx.learn.networks import INITS
 from aqm_mjx.learn.quasimetric import IQE
 
 QRL_VARIANTS = ('paper', 'ogbench')
+# the states the push term d(s, g) reaches: 'rolled' pairs each s with the next row's s' (QRL's reference
+# implementation, Wang et al. 2023: the batch is in random order, so row i + 1 is an independent state);
+# 'sampled' draws B more states uniformly from the dataset, one more encoder pass with gradients (B rows of
+# the 3B the quasimetric backpropagates through: 1.33x slower on a 2-core CPU at cpu-long)
+PUSH_PAIRS = ('rolled', 'sampled')
 POLICY_GOALS = ('trajectory', 'random')
 # Table 5 gives m for medium, large and giant; arena and teleport are not in it: arena takes medium's
 # value and teleport large's (its maze is the size of large), both extrapolated by us.
 PUSH_OFFSETS = {'arena': 50.0, 'medium': 50.0, 'large': 125.0, 'teleport': 125.0, 'giant': 250.0}
 OGBENCH_PUSH_OFFSET = 500.0  # OGBench's QRL: 100 * softplus(5 - d / 100)
 # fields added after runs were saved, with the value those runs were trained under
-LEGACY = {'subgoal_cap': 'end', 'initializer': 'lecun'}
+LEGACY = {'subgoal_cap': 'end', 'initializer': 'lecun', 'push_pairs': 'sampled'}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,6 +62,9 @@ class AQMConfig(LoopConfig):
                             "local-constraint slack: mean(relu(d(s,s') - 1)^2) <= epsilon^2 (OGBench 0.05)")
     push_offset: Optional[float] = option(None, 'm of omega; none: Table 5 by maze (or 500 for qrl=ogbench)')
     push_scale: float = option(0.01, 's of omega (Table 5)')
+    push_pairs: str = option('rolled', "the push term's goals: 'rolled' (s' of the next row in the batch, as QRL's "
+                             "reference code) or 'sampled' (B more dataset states; runs before 2026-12-07)",
+                             PUSH_PAIRS)
     lambda_init: float = option(1.0, 'initial Lagrange multiplier')
     lr_lambda: float = option(1e-2, 'multiplier learning rate')
     # policies (paper section 4.4, Appendix 10)
@@ -186,15 +194,21 @@ def make(cfg: AQMConfig, obs_size: int, action_size: int) -> Learner:
         key, k_batch, k_rand = jax.random.split(state.key, 3)
         batch = goals.sample(ds, k_batch, b, gs)
         s, s1, w, g = batch.observations, batch.next_observations, batch.subgoals, batch.goals
-        rand = goals.spread(ds.observations[jax.random.randint(k_rand, (b,), 0, ds.size)])
+        rolled = cfg.push_pairs == 'rolled'
+        if not rolled:
+            rand = goals.spread(ds.observations[jax.random.randint(k_rand, (b,), 0, ds.size)])
         lam = lam_value(state.lam)
 
         def dist_fn(qp):
             return lambda x, y: iqe.apply(qp, x, y, method=IQE.distance)
 
-        # (A) QUASIMETRIC: one encoder pass over s, s' and random goals (the rows with gradients)
+        # (A) QUASIMETRIC: one encoder pass over s, s' (and the sampled push goals): the rows with gradients
         def q_loss(qp):
-            zs, zs1, zr = jnp.split(iqe.apply(qp, jnp.concatenate([s, s1, rand]), method=IQE.encode), 3)
+            if rolled:
+                zs, zs1 = jnp.split(iqe.apply(qp, jnp.concatenate([s, s1]), method=IQE.encode), 2)
+                zr = jnp.roll(zs1, 1, axis=0)  # row i pushed from s_i to s'_{i-1}
+            else:
+                zs, zs1, zr = jnp.split(iqe.apply(qp, jnp.concatenate([s, s1, rand]), method=IQE.encode), 3)
             d_pos = dist_fn(qp)(zs, zs1)
             loss, info = qrl_loss(d_pos, dist_fn(qp)(zs, zr), lam, eps, offset, cfg.push_scale)
             return loss, (info, jax.lax.stop_gradient(zs), jax.lax.stop_gradient(zs1), jax.lax.stop_gradient(d_pos))
