@@ -96,6 +96,12 @@ def test_saved_configs_without_new_fields_keep_their_old_behaviour():
     assert aqm.AQMConfig.preset('cpu', policy_goals='random', subgoal_cap='end').goal_sampling.subgoal_cap == 'end'
     with pytest.raises(ValueError, match='initializer: unknown value'):
         aqm.AQMConfig.preset('cpu', initializer='xavier')
+    # push pairs: a config saved before the field pushed towards B more sampled states
+    assert new.push_pairs == 'rolled'
+    old = {k: v for k, v in new.to_dict().items() if k != 'push_pairs'}
+    assert aqm.AQMConfig.from_dict(old).push_pairs == 'sampled'
+    with pytest.raises(ValueError, match='push_pairs: unknown value'):
+        aqm.AQMConfig.preset('cpu', push_pairs='shuffled')
 
 
 @pytest.mark.parametrize('initializer', ['ogbench', 'lecun'])
@@ -119,6 +125,37 @@ def test_initializers_have_the_variance_they_name(initializer):
         else:
             want = 1 / np.sqrt(fan_in)
         assert abs(w.std() / want - 1) < 0.1, (net, name, w.std(), want)
+
+
+@pytest.mark.parametrize('pairs', ['rolled', 'sampled'])
+def test_push_term_reaches_the_states_its_pairing_names(pairs):
+    """The update's mean d(s, g) of the push term, recomputed from the same keys: 'rolled' pairs row i's
+    s with row i - 1's s', 'sampled' with B states drawn with the update's third key."""
+    from aqm_mjx.data import goals
+    from aqm_mjx.learn.quasimetric import IQE
+    rng = np.random.default_rng(0)
+    term = np.zeros(400, bool)
+    term[99::100] = True
+    ds = dsm.to_device(dict(observations=rng.normal(size=(400, 5)).astype(np.float32),
+                            actions=rng.uniform(-1, 1, (400, 2)).astype(np.float32), terminals=term))
+    cfg = aqm.AQMConfig.preset('ci', env=None, push_offset=30.0, batch_size=16, push_pairs=pairs)
+    learner = aqm.make(cfg, obs_size=5, action_size=2)
+    state = learner.init(jax.random.PRNGKey(3))
+    _, m = jax.jit(learner.update)(state, ds)
+    _, k_batch, k_rand = jax.random.split(state.key, 3)
+    batch = goals.sample(ds, k_batch, 16, cfg.goal_sampling)
+    iqe = learner.modules['quasimetric']
+    zs, zs1 = (iqe.apply(state.q_params, x, method=IQE.encode) for x in (batch.observations, batch.next_observations))
+    if pairs == 'rolled':
+        zg = np.concatenate([zs1[-1:], zs1[:-1]])
+    else:
+        zg = iqe.apply(state.q_params, ds.observations[jax.random.randint(k_rand, (16,), 0, 400)], method=IQE.encode)
+    d = np.asarray(iqe.apply(state.q_params, zs, zg, method=IQE.distance))
+    assert d.shape == (16,)
+    np.testing.assert_allclose(float(m['qrl/d_goal_mean']), d.mean(), rtol=1e-5)
+    # the transitions' own pairs give another mean (the test tells the pairings apart)
+    other = np.asarray(iqe.apply(state.q_params, zs, zs1, method=IQE.distance)).mean()
+    assert abs(other - d.mean()) > 1e-3
 
 
 def test_infer_env():

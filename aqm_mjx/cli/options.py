@@ -67,9 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument('--method', default='aqm', choices=method_names, help='registered method (aqm-mjx methods)')
     r.add_argument('--preset', default=presets.DEFAULT, choices=presets.names(),
                    help='every default of the run: cpu (minutes on a 2-core CPU: 100 MJX episodes, 20,000 '
-                        'updates), cpu-quick (400 episodes collected on the host, 25,000 updates: antmaze-medium in '
-                        'under 9 min, replanning not reliable at this scale), cpu-long (the default: the same data, '
-                        '50,000 updates, the shipped checkpoint\'s), '
+                        'updates), cpu-quick (400 episodes collected on the host, 25,000 updates: replanning not '
+                        'reliable at this scale), cpu-long (the default: the same data, 50,000 updates; antmaze-medium '
+                        'in 10 min on a 2-core CPU), '
                         'cpu-giant (antmaze-giant in under 2 h: 400 episodes of 2,001 '
                         'states, 150,000 updates, delta 12), paper (the paper\'s sizes; for a GPU), ci (the wiring in a few minutes '
                         'of compiling on a CPU, for tests; its success rates mean nothing)')
