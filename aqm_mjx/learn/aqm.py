@@ -33,10 +33,10 @@ from aqm_mjx.learn.networks import INITS
 from aqm_mjx.learn.quasimetric import IQE
 
 QRL_VARIANTS = ('paper', 'ogbench')
-# the states the push term d(s, g) reaches: 'rolled' pairs each s with the next row's s' (QRL's reference
-# implementation, Wang et al. 2023: the batch is in random order, so row i + 1 is an independent state);
+# the states the push term d(s, g) reaches: 'rolled' pairs each s with the previous row's s' (QRL's reference
+# implementation, Wang et al. 2023: the rows are drawn independently, so row i - 1's s' is independent of row i);
 # 'sampled' draws B more states uniformly from the dataset, one more encoder pass with gradients (B rows of
-# the 3B the quasimetric backpropagates through: 1.33x slower on a 2-core CPU at cpu-long)
+# the 3B the quasimetric backpropagates through: 1.28x slower on a 2-core CPU at cpu-long, bench_train.py)
 PUSH_PAIRS = ('rolled', 'sampled')
 POLICY_GOALS = ('trajectory', 'random')
 # Table 5 gives m for medium, large and giant; arena and teleport are not in it: arena takes medium's
@@ -62,7 +62,7 @@ class AQMConfig(LoopConfig):
                             "local-constraint slack: mean(relu(d(s,s') - 1)^2) <= epsilon^2 (OGBench 0.05)")
     push_offset: Optional[float] = option(None, 'm of omega; none: Table 5 by maze (or 500 for qrl=ogbench)')
     push_scale: float = option(0.01, 's of omega (Table 5)')
-    push_pairs: str = option('rolled', "the push term's goals: 'rolled' (s' of the next row in the batch, as QRL's "
+    push_pairs: str = option('rolled', "the push term's goals: 'rolled' (s' of the previous row in the batch, as QRL's "
                              "reference code) or 'sampled' (B more dataset states; runs before 2026-12-07)",
                              PUSH_PAIRS)
     lambda_init: float = option(1.0, 'initial Lagrange multiplier')

@@ -4,7 +4,8 @@ apart, and seeds vmapped against one seed, in one run.
     python benchmarks/throughput/bench_train.py                                   # CPU: every method, 25-35 min on 2 cores
     python benchmarks/throughput/bench_train.py --methods aqm hiql --presets cpu  # some of them
     python benchmarks/throughput/bench_train.py --presets paper --calls 5         # on a GPU
-    python benchmarks/throughput/bench_train.py --methods aqm --presets cpu-long --vmap-seeds 1 --push-pairs sampled rolled
+    python benchmarks/throughput/bench_train.py --methods aqm --presets cpu-long --vmap-seeds 1 \
+        --push-pairs sampled rolled                                               # AQM's push pairings, as a ratio
 
 Each row builds a method's learner for antmaze (29-d observations, 8-d actions) on a random dataset
 of 100K states in 100 trajectories, runs one jitted chunk of ``updates_per_call`` updates (compile +
@@ -70,8 +71,8 @@ def _widths(cfg) -> dict:
 
 def rate(preset, calls, upc, objective='saw', method='aqm', seeds=1, per_seed_step=False, phase2=False,
          push_pairs=None):
-    """One row: ``method`` at ``preset`` (AQM's ``objective`` and ``push_pairs``), one seed, and ``seeds`` vmapped if > 1
-    (step shared; also each seed's own with ``per_seed_step``); GAS from its phase boundary with ``phase2``."""
+    """One row: ``method`` at ``preset`` (AQM's ``objective`` and ``push_pairs``), one seed, and ``seeds`` vmapped
+    if > 1 (step shared; also each seed's own with ``per_seed_step``); GAS from its phase boundary with ``phase2``."""
     entry = methods.get(method)
     over = dict(objective=objective) if 'objective' in entry.config.__dataclass_fields__ else {}
     if push_pairs and 'push_pairs' in entry.config.__dataclass_fields__:
