@@ -55,6 +55,59 @@ def test_cuts_split_by_outcome_by_hand():
         stats.cuts_by_outcome([True, False], [1, 2, 3])
 
 
+def test_newcombe_and_paired_intervals_by_hand():
+    # Newcombe (1998), method 10, his example (a): 56/70 against 48/80 gives 0.0524 to 0.3339
+    lo, hi = stats.newcombe(56, 70, 48, 80)
+    assert (lo, hi) == (pytest.approx(0.0524, abs=1e-4), pytest.approx(0.3339, abs=1e-4))
+    # per-seed differences 0.15 and 0.30: mean 0.225, sd 0.1061, half-width 12.706 * 0.1061 / sqrt(2) = 0.953
+    lo, hi = stats.paired_interval([0.15, 0.30])
+    assert (lo, hi) == (pytest.approx(0.225 - 0.9531, abs=1e-3), pytest.approx(0.225 + 0.9531, abs=1e-3))
+    assert lo < 0 and hi > 1  # not clipped: a difference is not a rate
+    assert all(math.isnan(x) for x in stats.paired_interval([0.2]))
+    with pytest.raises(ValueError, match='finite'):
+        stats.paired_interval([0.1, float('nan')])
+
+
+def test_closure_table_pools_seeds_by_hand(tmp_path):
+    """benchmarks/experiments/closure_table.py --pool: two seeds' closure evaluations (2 tasks x 10
+    episodes on 2 closed corridors: 40 episodes a seed and row) pooled into rows and differences a
+    person can recompute; seeds that do not pool are refused with the reason."""
+    def evaluation(name, aqm, flat, episodes=10):
+        summary = {row: {v: {f'task_{t}': rates[i][j] for j, t in enumerate((1, 2))}
+                         for i, v in enumerate(('close-3-3', 'close-5-4'))}
+                   for row, rates in (('aqm', aqm), ('flat', flat))}
+        path = tmp_path / f'{name}.json'
+        path.write_text(json.dumps(dict(checkpoint=name, variants=['close-3-3', 'close-5-4'], tasks=[1, 2],
+                                        config=dict(protocol=dict(episodes=episodes)), summary=summary)))
+        return str(path)
+
+    a = evaluation('seed_1', aqm=[[0.5, 0.3], [0.2, 0.0]], flat=[[0.1, 0.1], [0.1, 0.1]])  # 10 and 4 of 40
+    b = evaluation('seed_2', aqm=[[0.5, 0.5], [0.5, 0.5]], flat=[[0.2, 0.2], [0.2, 0.2]])  # 20 and 8 of 40
+    script = 'benchmarks/experiments/closure_table.py'
+    out = tmp_path / 'pooled.json'
+    run = subprocess.run([sys.executable, script, '--pool', a, b, '--rows', 'aqm', 'flat', '--json', str(out)],
+                         capture_output=True, text=True, check=True)
+    p = json.loads(out.read_text())
+    aqm, flat, diff = p['rows']['aqm'], p['rows']['flat'], p['differences']['flat']
+    assert aqm['per_seed'] == [0.25, 0.5] and flat['per_seed'] == [0.1, 0.2]
+    assert aqm['per_layout'] == {'close-3-3': pytest.approx(0.45), 'close-5-4': pytest.approx(0.3)}
+    assert aqm['closures'] == 30 / 80 and aqm['closures_ci'] == [pytest.approx(x) for x in stats.wilson(30, 80)]
+    assert diff['per_seed'] == [pytest.approx(0.15), pytest.approx(0.3)] and diff['mean'] == pytest.approx(0.225)
+    assert diff['paired_ci'] == [pytest.approx(x) for x in stats.paired_interval([0.15, 0.3])]
+    assert diff['newcombe_ci'] == [pytest.approx(x) for x in stats.newcombe(30, 80, 12, 80)]
+    assert '| aqm | 45.0 | 30.0 | 37.5 [' in run.stdout and 'aqm - flat: +22.5 (paired t [-72.8, +117.8]' in run.stdout
+
+    def refused(*paths, rows=('aqm', 'flat')):
+        r = subprocess.run([sys.executable, script, '--pool', *paths, '--rows', *rows], capture_output=True, text=True)
+        assert r.returncode != 0
+        return r.stderr.strip().splitlines()[-1]
+
+    assert 'a checkpoint appears twice' in refused(a, a)
+    assert 'do not pool' in refused(a, evaluation('seed_3', aqm=[[0, 0], [0, 0]], flat=[[0, 0], [0, 0]], episodes=20))
+    assert refused(a, b, rows=('aqm', 'no-pruning')).startswith("closure_table: seed_1 has no row ['no-pruning']")
+    assert 'no results.json there' in refused(str(tmp_path / 'nowhere'))
+
+
 def test_aggregate_rows_from_per_seed_tables():
     def table(m, rates, agents=('flat',)):
         return dict(episodes=10, tasks=[1, 2], variants=['base'],

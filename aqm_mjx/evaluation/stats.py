@@ -3,6 +3,8 @@ episodes (Wilson's score interval on the pooled successes). Plain NumPy; no SciP
 
     lo, hi = seed_interval([0.8, 0.9])           # t with 1 degree of freedom: wide, as it should be
     lo, hi = wilson(successes=90, n=100)
+    lo, hi = newcombe(56, 70, 48, 80)            # p1 - p2 over two samples of episodes
+    lo, hi = paired_interval([0.04, 0.06, 0.16]) # a difference measured on each seed
     cuts_by_outcome(success, pruned)             # legs cut per episode, apart for successes and failures
 """
 
@@ -34,15 +36,8 @@ def t975(df: int) -> float:
 def seed_interval(values: Sequence[float]) -> tuple[float, float]:
     """95% t interval of the mean of ``values`` (one per seed), clipped to [0, 1]. With one value
     there is no spread to estimate: ``(nan, nan)``."""
-    v = [float(x) for x in values]
-    if not v or any(math.isnan(x) for x in v):
-        raise ValueError(f'seed_interval needs finite values; got {values!r}')
-    if len(v) < 2:
-        return math.nan, math.nan
-    mean = sum(v) / len(v)
-    sd = math.sqrt(sum((x - mean) ** 2 for x in v) / (len(v) - 1))
-    half = t975(len(v) - 1) * sd / math.sqrt(len(v))
-    return max(0.0, mean - half), min(1.0, mean + half)
+    lo, hi = paired_interval(values)
+    return (lo, hi) if math.isnan(lo) else (max(0.0, lo), min(1.0, hi))
 
 
 def wilson(successes: float, n: int, z: float = Z975) -> tuple[float, float]:
@@ -54,6 +49,29 @@ def wilson(successes: float, n: int, z: float = Z975) -> tuple[float, float]:
     centre = (p + z * z / (2 * n)) / den
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def newcombe(k1: int, n1: int, k2: int, n2: int) -> tuple[float, float]:
+    """95% interval of ``k1 / n1 - k2 / n2`` from the two Wilson intervals (Newcombe's method 10), for
+    two rates over separate episodes (unpaired)."""
+    p1, p2 = k1 / n1, k2 / n2
+    l1, u1 = wilson(k1, n1)
+    l2, u2 = wilson(k2, n2)
+    d = p1 - p2
+    return d - math.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2), d + math.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2)
+
+
+def paired_interval(differences: Sequence[float]) -> tuple[float, float]:
+    """95% t interval of the mean of per-seed ``differences`` (not clipped: a difference may be
+    negative). With one value: ``(nan, nan)``."""
+    v = [float(x) for x in differences]
+    if not v or any(math.isnan(x) for x in v):
+        raise ValueError(f'a t interval needs finite values; got {differences!r}')
+    if len(v) < 2:
+        return math.nan, math.nan
+    mean = sum(v) / len(v)
+    half = t975(len(v) - 1) * math.sqrt(sum((x - mean) ** 2 for x in v) / (len(v) - 1)) / math.sqrt(len(v))
+    return mean - half, mean + half
 
 
 def cuts_by_outcome(success, pruned) -> dict:

@@ -4,6 +4,8 @@
         --ablations no-pruning paper=1 paper=cal --backend ogbench --out OUT
     python benchmarks/experiments/closure_table.py OUT [--rows aqm no-pruning paper=1 paper=cal]
 
+    python benchmarks/experiments/closure_table.py --pool S1 S2 S3 [--rows aqm no-pruning flat] [--json OUT.json]
+
 ``OUT`` is the folder of several checkpoints (one sub-folder each) or of one (its ``results.json`` alone;
 the model is labelled ``--label``, default the checkpoint folder's name).
 
@@ -13,12 +15,20 @@ the closure share (closure success / unchanged-maze success). The gain's and the
 intervals come from a parametric bootstrap over the episodes: every (layout, task) cell redrawn
 binomially at its observed rate (10,000 draws; the rows' episodes are drawn apart, so for the gain
 the interval is wider than a paired one would be). Prints Markdown; ``--json`` writes the numbers.
+
+``--pool`` reads one model per seed (each ``Si`` an evaluation's ``results.json``, or its folder; a folder of
+several checkpoints gives each) and pools them into one row per ``--rows`` entry: the mean of each layout
+over the seeds, the mean of the closed corridors with its 95% Wilson interval over the pooled episodes,
+each seed's mean; then the first row minus each other: the mean difference with Student's t interval over
+the per-seed differences (paired: the rows ran on the same episodes) and Newcombe's over the pooled
+episodes (unpaired). The seeds must share layouts, tasks and episodes and be different checkpoints.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 
@@ -63,6 +73,95 @@ def model_rows(res: dict, rows, n: int, rng) -> list[dict]:
     return out
 
 
+def _read_models(paths) -> list[dict]:
+    """One ``results.json`` per model from files or evaluation folders (a folder of several checkpoints
+    gives each sub-folder's)."""
+    out = []
+    for path in paths:
+        file = os.path.join(path, 'results.json') if os.path.isdir(path) else path
+        if not os.path.isfile(file):
+            raise SystemExit(f'closure_table: {path}: no results.json there')
+        res = json.load(open(file))
+        if 'checkpoints' in res:  # several checkpoints: one sub-folder each
+            subs = [next(d for d in (k, k.replace(':', '_')) if os.path.isdir(os.path.join(path, d)))
+                    for k in res['checkpoints']]
+            out += [json.load(open(os.path.join(path, d, 'results.json'))) for d in subs]
+        else:
+            out.append(res)
+    return out
+
+
+def pool_seeds(models: list[dict], rows) -> dict:
+    """Pool one model per seed into one row per ``rows`` entry, and the first row against each other.
+
+    Args:
+        models: ``aqm-mjx evaluate`` results (one checkpoint each) on the same layouts, tasks and episodes.
+        rows: summary rows to pool (e.g. ``['aqm', 'no-pruning', 'flat']``); the first is compared
+            against the others.
+    Returns:
+        ``{'layouts', 'closed', 'episodes', 'seeds', 'rows': {row: {...}}, 'differences': {row: {...}}}``:
+        per row ``per_layout`` (mean over seeds), ``closures`` with ``closures_ci`` (Wilson over the
+        pooled closed-corridor episodes) and ``per_seed``; per other row the first row minus it:
+        ``mean``, ``per_seed``, ``paired_ci`` (t over seeds) and ``newcombe_ci`` (pooled episodes).
+    """
+    if len(models) < 1:
+        raise SystemExit('closure_table: --pool needs at least one evaluation')
+    first = models[0]
+    layouts, tasks = list(first['variants']), list(first['tasks'])
+    n = int(first['config']['protocol']['episodes'])
+    closed = [v for v in layouts if v.startswith('close')]
+    if not closed:
+        raise SystemExit(f'closure_table: {first["checkpoint"]}: no closed corridor among its layouts {layouts}')
+    for m in models:
+        got = (list(m['variants']), list(m['tasks']), int(m['config']['protocol']['episodes']))
+        if got != (layouts, tasks, n):
+            raise SystemExit(f'closure_table: {m["checkpoint"]} has layouts, tasks and episodes {got}; '
+                             f'{first["checkpoint"]} has {(layouts, tasks, n)}: they do not pool')
+        missing = [r for r in rows if r not in m['summary']]
+        if missing:
+            raise SystemExit(f'closure_table: {m["checkpoint"]} has no row {missing} (rows: {sorted(m["summary"])})')
+    names = [m['checkpoint'] for m in models]
+    if len(set(names)) < len(names):
+        raise SystemExit(f'closure_table: a checkpoint appears twice among {names}: pool different seeds')
+    cells = len(closed) * len(tasks) * n  # closed-corridor episodes per seed and row
+    counts = {r: np.array([_counts(m['summary'][r], closed, tasks, n).sum() for m in models]) for r in rows}
+    out = dict(layouts=layouts, closed=closed, episodes=n, seeds=names, rows={}, differences={})
+    for r in rows:
+        k = counts[r]
+        out['rows'][r] = dict(
+            per_layout={v: float(np.mean([_counts(m['summary'][r], [v], tasks, n).sum() / (len(tasks) * n)
+                                          for m in models])) for v in layouts},
+            closures=float(k.sum() / (cells * len(models))),
+            closures_ci=list(stats.wilson(int(k.sum()), cells * len(models))),
+            per_seed=(k / cells).tolist())
+    for r in rows[1:]:
+        d = (counts[rows[0]] - counts[r]) / cells
+        out['differences'][r] = dict(
+            mean=float(d.mean()), per_seed=d.tolist(), paired_ci=list(stats.paired_interval(d)),
+            newcombe_ci=list(stats.newcombe(int(counts[rows[0]].sum()), cells * len(models),
+                                            int(counts[r].sum()), cells * len(models))))
+    return out
+
+
+def pooled_markdown(p: dict) -> str:
+    lines = ['| row | ' + ' | '.join(p['layouts']) + ' | closures (mean) [95% Wilson] | per seed |',
+             '|' + '---|' * (len(p['layouts']) + 3)]
+    for r, v in p['rows'].items():
+        lines.append(f'| {r} | ' + ' | '.join(f'{100 * v["per_layout"][x]:.1f}' for x in p['layouts'])
+                     + f' | {100 * v["closures"]:.1f} {span(v["closures_ci"])} | '
+                     + ', '.join(f'{100 * x:.1f}' for x in v['per_seed']) + ' |')
+    first = next(iter(p['rows']))
+    for r, d in p['differences'].items():
+        lo, hi = d['paired_ci']
+        paired = 'no t interval with one seed' if math.isnan(lo) else f'paired t [{100 * lo:+.1f}, {100 * hi:+.1f}]'
+        lines.append(f'\n{first} - {r}: {100 * d["mean"]:+.1f} ({paired}; pooled episodes, Newcombe '
+                     f'[{100 * d["newcombe_ci"][0]:+.1f}, {100 * d["newcombe_ci"][1]:+.1f}]); per seed '
+                     + ', '.join(f'{100 * x:+.1f}' for x in d['per_seed']))
+    lines.append(f'\n{len(p["seeds"])} seeds x {p["episodes"]} episodes per task and layout: '
+                 f'{len(p["closed"])} closed corridors.')
+    return '\n'.join(lines)
+
+
 def pct(x) -> str:
     return f'{100 * x:.0f}'
 
@@ -73,11 +172,24 @@ def span(ci) -> str:
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('folder', help='an `aqm-mjx evaluate` output folder with one sub-folder per checkpoint')
-    p.add_argument('--rows', nargs='+', default=['aqm', 'no-pruning', 'paper=1', 'paper=cal'])
+    p.add_argument('folder', nargs='?', help='an `aqm-mjx evaluate` output folder with one sub-folder per checkpoint')
+    p.add_argument('--pool', nargs='+', default=None, metavar='S',
+                   help="one evaluation per seed (results.json or its folder): pool them into one row per --rows")
+    p.add_argument('--rows', nargs='+', default=None,
+                   help="rows to report (default aqm no-pruning paper=1 paper=cal; with --pool aqm no-pruning flat)")
     p.add_argument('--json', default=None)
     p.add_argument('--label', default=None, help="the model's name when OUT holds one checkpoint's evaluation")
     a = p.parse_args()
+    if (a.folder is None) == (a.pool is None):
+        p.error('give either an evaluation folder or --pool S1 S2 ...')
+    if a.pool:
+        pooled = pool_seeds(_read_models(a.pool), a.rows or ['aqm', 'no-pruning', 'flat'])
+        print(pooled_markdown(pooled))
+        if a.json:
+            with open(a.json, 'w') as f:
+                json.dump(pooled, f, indent=1)
+        return
+    a.rows = a.rows or ['aqm', 'no-pruning', 'paper=1', 'paper=cal']
     top = json.load(open(os.path.join(a.folder, 'results.json')))
     single = None if 'checkpoints' in top else top  # one checkpoint: its results.json is the whole folder
     if single:

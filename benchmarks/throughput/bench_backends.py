@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import os
 import sys
 import time
@@ -46,15 +45,6 @@ from aqm_mjx.assess import prepare_evaluation, read_data
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
 from _report import finish  # noqa: E402
 from bench_evaluate import ogbench_loop_rate
-
-
-def newcombe(k1: int, n1: int, k2: int, n2: int) -> tuple[float, float]:
-    """95% interval of p1 - p2 from the two Wilson intervals (Newcombe's method 10)."""
-    p1, p2 = k1 / n1, k2 / n2
-    l1, u1 = stats.wilson(k1, n1)
-    l2, u2 = stats.wilson(k2, n2)
-    d = p1 - p2
-    return d - math.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2), d + math.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2)
 
 
 def serial_agent_rate(env, trained, graph, cfg, eps, k_eval, n_steps: int) -> dict:
@@ -186,7 +176,7 @@ def main():
             sel = mjx.table.agent == i
             k_m, k_o, n_r = int(mjx.success[sel].sum()), int(ogb.success[sel].sum()), int(sel.sum())
             (lm, um), (lo, uo) = stats.wilson(k_m, n_r), stats.wilson(k_o, n_r)
-            dl, du = newcombe(k_o, n_r, k_m, n_r)
+            dl, du = stats.newcombe(k_o, n_r, k_m, n_r)
             inside = bool(lo <= k_m / n_r <= uo and lm <= k_o / n_r <= um)
             row = dict(row=f'agreement {name}', n=n_r, mjx=k_m / n_r, mjx_ci=[lm, um], ogbench=k_o / n_r,
                        ogbench_ci=[lo, uo], diff=(k_o - k_m) / n_r, diff_ci=[dl, du], each_inside_other=inside,
