@@ -73,6 +73,13 @@ def model_rows(res: dict, rows, n: int, rng) -> list[dict]:
     return out
 
 
+def _checkpoint_results(folder: str, label: str) -> dict:
+    """The ``results.json`` of checkpoint ``label`` in a several-checkpoint evaluation ``folder`` (its
+    sub-folder is named ``label``, or with ':' written '_')."""
+    sub = next(d for d in (label, label.replace(':', '_')) if os.path.isdir(os.path.join(folder, d)))
+    return json.load(open(os.path.join(folder, sub, 'results.json')))
+
+
 def _read_models(paths) -> list[dict]:
     """One ``results.json`` per model from files or evaluation folders (a folder of several checkpoints
     gives each sub-folder's)."""
@@ -83,9 +90,7 @@ def _read_models(paths) -> list[dict]:
             raise SystemExit(f'closure_table: {path}: no results.json there')
         res = json.load(open(file))
         if 'checkpoints' in res:  # several checkpoints: one sub-folder each
-            subs = [next(d for d in (k, k.replace(':', '_')) if os.path.isdir(os.path.join(path, d)))
-                    for k in res['checkpoints']]
-            out += [json.load(open(os.path.join(path, d, 'results.json'))) for d in subs]
+            out += [_checkpoint_results(path, k) for k in res['checkpoints']]
         else:
             out.append(res)
     return out
@@ -124,13 +129,16 @@ def pool_seeds(models: list[dict], rows) -> dict:
     if len(set(names)) < len(names):
         raise SystemExit(f'closure_table: a checkpoint appears twice among {names}: pool different seeds')
     cells = len(closed) * len(tasks) * n  # closed-corridor episodes per seed and row
-    counts = {r: np.array([_counts(m['summary'][r], closed, tasks, n).sum() for m in models]) for r in rows}
+    shut = [layouts.index(v) for v in closed]
+    # successes per row: [seeds, layouts, tasks]
+    grid = {r: np.stack([_counts(m['summary'][r], layouts, tasks, n) for m in models]) for r in rows}
+    counts = {r: g[:, shut].sum((1, 2)) for r, g in grid.items()}  # [seeds] on the closed corridors
     out = dict(layouts=layouts, closed=closed, episodes=n, seeds=names, rows={}, differences={})
     for r in rows:
         k = counts[r]
+        per_layout = grid[r].sum((0, 2)) / (len(models) * len(tasks) * n)
         out['rows'][r] = dict(
-            per_layout={v: float(np.mean([_counts(m['summary'][r], [v], tasks, n).sum() / (len(tasks) * n)
-                                          for m in models])) for v in layouts},
+            per_layout={v: float(x) for v, x in zip(layouts, per_layout)},
             closures=float(k.sum() / (cells * len(models))),
             closures_ci=list(stats.wilson(int(k.sum()), cells * len(models))),
             per_seed=(k / cells).tolist())
@@ -207,8 +215,7 @@ def main():
         if single:
             res = single  # already read
         else:
-            sub = next(d for d in (label, label.replace(':', '_')) if os.path.isdir(os.path.join(a.folder, d)))
-            res = json.load(open(os.path.join(a.folder, sub, 'results.json')))
+            res = _checkpoint_results(a.folder, label)
         cal = res.get('calibration') or {}
         table[label] = dict(calibration=cal, rows=model_rows(res, a.rows, n, rng))
         for r in table[label]['rows']:
