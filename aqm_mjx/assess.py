@@ -136,7 +136,8 @@ def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, vari
     if m['overflow'] and agent.mapper is not None:
         log(f'warning: {trained.method} needed more map nodes than its max_nodes; some states joined their nearest')
     elif m['overflow']:
-        log(f'warning: {cfg.map.max_keypoints} keypoints did not cover the candidates at delta {cfg.map.delta}; '
+        log(f'warning: {cfg.map.max_keypoints} keypoints did not cover the candidates at delta {cfg.map.delta}: '
+            f'{m["uncovered"]:,} of {m["candidates"]:,} were left outside every keypoint\'s delta; '
             'raise --max-keypoints or --delta')
     what = 'nodes of its own map' if agent.mapper is not None else f'keypoints at delta {cfg.map.delta}'
     mapped = 'no map' if graph is None else f'{m["keypoints"]} {what} ({m["seconds"]:.1f} s)'
@@ -163,7 +164,8 @@ def map_and_evaluate(trained: fit.Trained, env, data: dict, cfg: RunConfig, vari
                     p.close()
     report.print_summary(res, log, cfg.protocol.false_alarm)
     info = dict(info, method=trained.method, step=trained.step, train_preset=trained.config.preset,
-                keypoints=m['keypoints'], keypoint_overflow=m['overflow'], map_s=round(m['seconds'], 2),
+                keypoints=m['keypoints'], keypoint_overflow=m['overflow'],
+                **({'keypoint_uncovered': m['uncovered']} if 'uncovered' in m else {}), map_s=round(m['seconds'], 2),
                 config=cfg.to_dict(), **({} if cal is None else dict(calibration=cal)))
     if not processes.writer():  # several processes: each holds every result; process 0 writes them
         return res, info

@@ -93,7 +93,7 @@ def test_iwe_separated_and_covering_brute_force(selector):
     fn = keypoints.iwe if selector == 'iwe' else keypoints.farthest_point
     delta = 4.0
     kp = jax.jit(lambda k: fn(d, jnp.asarray(pts), k, delta, 64, chunk=50))(jax.random.PRNGKey(0))
-    assert not bool(kp.overflow)
+    assert not bool(kp.overflow) and int(kp.uncovered) == 0
     dm = np.asarray(graph.pairwise(d, jnp.asarray(pts), jnp.asarray(pts)))
     dsym = np.maximum(dm, dm.T)
     zi = np.asarray(kp.index)[np.asarray(kp.mask)]
@@ -131,6 +131,13 @@ def test_overflow_flag_and_random_and_batch_variants():
     pts, d = directed_grid_quasimetric()
     kp = keypoints.iwe(d, jnp.asarray(pts), jax.random.PRNGKey(0), 1.5, 10)
     assert bool(kp.overflow) and int(kp.count) == 10
+    # how far 10 slots fell short, by hand: the grid's points that are no keypoint and lie at d_sym >= 1.5
+    # from every keypoint (144 points, each keypoint covering itself and its 2-4 neighbours at most)
+    dm = np.asarray(graph.pairwise(d, jnp.asarray(pts), jnp.asarray(pts)))
+    zi = np.asarray(kp.index)[np.asarray(kp.mask)]
+    left = np.maximum(dm, dm.T)[:, zi].min(axis=1) >= 1.5
+    left[zi] = False
+    assert int(kp.uncovered) == int(left.sum()) and 144 - 5 * 10 <= int(kp.uncovered) < 144 - 10
     r = keypoints.uniform_random(jnp.asarray(pts), jax.random.PRNGKey(0), 20, valid=jnp.arange(len(pts)) < 15)
     assert int(r.count) == 15 and set(np.asarray(r.index)[np.asarray(r.mask)].tolist()) == set(range(15))
     b = keypoints.iwe_best_of_batches(d, jnp.asarray(pts), jax.random.PRNGKey(0), 4.0, 64, n_batches=4, batch_size=64)
@@ -305,3 +312,25 @@ def test_pairwise_in_row_chunks_equals_the_whole_matrix_and_holds_a_chunk_of_act
     pairs_activations = 256 * 256 * width * 4  # the whole matrix's hidden layer, float32
     assert mem['whole'] >= pairs_activations / 2, mem  # the reference does hold the K x M activations
     assert mem['rows'] <= pairs_activations / 8, mem  # 16 rows of 256: 1/16 of them, with room
+
+
+def test_trimmed_map_says_how_many_candidates_the_slots_left_uncovered():
+    """The info an evaluation prints when IWE runs out of slots: ``uncovered`` of ``candidates`` states,
+    recomputed from the keypoints' candidates by hand; 0 once the slots suffice."""
+    from aqm_mjx.interface import Agent
+    from aqm_mjx.mapping.build import MapConfig, candidate_rows, trimmed_map
+
+    pts, d = directed_grid_quasimetric()
+    agent = Agent(lambda aux, o: o, lambda aux, x, y: d(x, y), None, None)
+    key = jax.random.PRNGKey(3)
+    cfg = MapConfig(delta=1.5, max_keypoints=16, candidates=100)
+    g, info = trimmed_map(agent, jnp.asarray(pts), cfg, key)
+    assert info['overflow'] and info['keypoints'] == 16 and info['candidates'] == 100
+    cand = pts[np.asarray(candidate_rows(len(pts), cfg, key))]
+    dm = np.asarray(graph.pairwise(d, jnp.asarray(cand), jnp.asarray(np.asarray(g.obs)[np.asarray(g.mask)])))
+    dt = np.asarray(graph.pairwise(d, jnp.asarray(np.asarray(g.obs)[np.asarray(g.mask)]), jnp.asarray(cand)))
+    near = np.maximum(dm, dt.T).min(axis=1)
+    left = (near >= 1.5) & (near > 0)  # a keypoint's own candidate is at distance 0
+    assert info['uncovered'] == int(left.sum()) > 0
+    _, enough = trimmed_map(agent, jnp.asarray(pts), MapConfig(delta=1.5, max_keypoints=144, candidates=100), key)
+    assert not enough['overflow'] and enough['uncovered'] == 0 and enough['keypoints'] <= 100

@@ -146,14 +146,18 @@ def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array, stat
     shape: one compiled evaluation for maps of any count, as a learning curve needs).
 
     Returns:
-        (trimmed graph, ``{'keypoints': count, 'overflow': bool, 'seconds': float}``).
+        (trimmed graph, ``{'keypoints': count, 'overflow': bool, 'uncovered': int, 'candidates': int,
+        'seconds': float}``): ``uncovered`` of the ``candidates`` encoded states were left outside every
+        keypoint's delta when the slots ran out (0 without overflow).
     """
     t0 = time.perf_counter()
     build = _jitted_build((agent.encode, agent.dist), cfg)
     graph, kp = build(agent.aux, jnp.asarray(observations), key)
     n_kp = int(kp.count)
     graph = graph if static else _trim_to_count(graph, n_kp)
-    return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), seconds=time.perf_counter() - t0)
+    return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), uncovered=int(kp.uncovered),
+                       candidates=min(int(np.shape(observations)[0]), int(cfg.candidates)),
+                       seconds=time.perf_counter() - t0)
 
 
 def own_map(agent: Agent, aux, observations: jax.Array, traj_end: jax.Array, max_len: int, key: jax.Array):

@@ -4,7 +4,7 @@ Every selector works on *encoded* candidates: encode the dataset once with the q
 encoder, then pass the latents ``[N, D]`` and a pairwise latent distance ``dist(x [D], y [D]) ->
 scalar``. ``d_sym(x, y) = max(d(x, y), d(y, x))``. Shapes are static: at most ``max_keypoints``
 are returned with a validity mask, and ``Keypoints.overflow`` says when candidates were left
-uncovered because that maximum was reached.
+uncovered because that maximum was reached (``Keypoints.uncovered``: how many).
 
 The distance from all N candidates to one new keypoint is the only O(N) work per iteration; it is
 computed in chunks of ``chunk`` candidates (``lax.map``), so N can be millions.
@@ -33,6 +33,9 @@ class Keypoints:
             and for selectors without a wavefront), for the optional parent edges.
         attach: float32 ``[K]`` d_sym to that parent (the paper's rho).
         overflow: bool, True when candidates remained uncovered at ``max_keypoints``.
+        uncovered: int32, how many valid candidates were left neither a keypoint nor within delta of one
+            when the selector stopped (0 without overflow, and for selectors without a radius): how far
+            ``max_keypoints`` fell short.
     """
 
     index: jax.Array
@@ -41,6 +44,7 @@ class Keypoints:
     parent: jax.Array
     attach: jax.Array
     overflow: jax.Array
+    uncovered: jax.Array
 
 
 def sym(dist: Dist) -> Dist:
@@ -107,7 +111,8 @@ def _greedy(dist: Dist, latents, key, delta, max_keypoints, valid, chunk, pick_f
     c = jax.lax.while_loop(cond, body, init)
     mask = jnp.arange(k) < c['count']
     return Keypoints(index=c['index'], mask=mask, count=c['count'], parent=jnp.where(mask, c['parent'], -1),
-                     attach=jnp.where(mask, c['attach'], 0.0), overflow=c['alive'].any())
+                     attach=jnp.where(mask, c['attach'], 0.0), overflow=c['alive'].any(),
+                     uncovered=c['alive'].sum().astype(jnp.int32))
 
 
 def iwe(dist: Dist, latents: jax.Array, key: jax.Array, delta: float, max_keypoints: int,
@@ -151,7 +156,7 @@ def uniform_random(latents: jax.Array, key: jax.Array, budget: int, valid: jax.A
     k = budget
     return Keypoints(index=jnp.where(mask, idx, -1).astype(jnp.int32), mask=mask, count=mask.sum().astype(jnp.int32),
                      parent=jnp.full((k,), -1, jnp.int32), attach=jnp.zeros((k,), jnp.float32),
-                     overflow=jnp.zeros((), bool))
+                     overflow=jnp.zeros((), bool), uncovered=jnp.zeros((), jnp.int32))
 
 
 def iwe_best_of_batches(dist: Dist, latents: jax.Array, key: jax.Array, delta: float, max_keypoints: int,
