@@ -291,10 +291,17 @@ def test_distance_profile_reads_a_quasimetric_along_the_data_and_refuses_a_flat_
     script = 'benchmarks/experiments/distance_profile.py'
     out = tmp_path / 'profile.json'
     run = subprocess.run([sys.executable, script, '--dataset', data, '--checkpoint', qrl, '--offsets', '0', '1', '5',
-                          '10', '--pairs', '64', '--out', str(out)], capture_output=True, text=True, timeout=300)
+                          '10', '--pairs', '64', '--coverage', '2', '600', '--delta', '1', '--candidates', '500',
+                          '--out', str(out)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     (row,) = json.load(open(out))['rows']
     assert row['method'] == 'qrl' and row['pairs'] == 64 and list(row['offsets']) == ['0', '1', '5', '10']
+    # --coverage: 2 slots leave candidates outside delta 1; 600 slots (more than the 500 candidates) cover them
+    few, enough = row['coverage']
+    assert (few['slots'], few['keypoints'], few['overflow'], few['candidates']) == (2, 2, True, 500)
+    assert 0 < few['uncovered'] <= 500 - 2
+    assert not enough['overflow'] and enough['uncovered'] == 0 and 2 < enough['keypoints'] <= 500
+    assert f"with 2 slots: 2 keypoints, {few['uncovered']:,} of 500 candidates left uncovered" in run.stdout
     assert row['offsets']['0'] == dict(q10=0.0, q50=0.0, q90=0.0, not_above_d0=1.0)
     for q in row['offsets'].values():
         assert q['q10'] <= q['q50'] <= q['q90'] and 0.0 <= q['not_above_d0'] <= 1.0

@@ -11,6 +11,15 @@ before a map is built; this prints the profile behind that test.
 
 Each row: the checkpoint, its method, and per offset k the 10%, 50% and 90% quantiles of d and the
 share of pairs where d(s_t, s_{t+k}) <= d(s_t, s_t) (a distance that does not tell s_{t+k} from s_t).
+
+``--coverage K [K ...]`` adds how many keypoints AQM's map needs on the distance: IWE at ``--delta``
+over the candidates an evaluation draws (``--candidates``, the map key ``aqm-mjx evaluate --seed S``
+uses) with K slots each, and how many candidates the K slots left outside every keypoint's delta (0:
+the map covers the data). When an evaluation warns that its keypoints did not cover the candidates,
+this says whether more slots would, and how many:
+
+    python benchmarks/experiments/distance_profile.py --dataset runs/giant/data400/antmaze-giant-navigate.npz \
+        --checkpoint runs/map67/giant_nav_gcivl/train/gcivl/seed_0 --offsets 1 25 --coverage 512 1024 2048 --delta 12
 """
 
 from __future__ import annotations
@@ -26,7 +35,8 @@ import numpy as np
 from aqm_mjx.agent import planners
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.learn import fit
-from aqm_mjx.mapping.build import distances_along
+from aqm_mjx.mapping.build import MapConfig, distances_along, trimmed_map
+from aqm_mjx.pipeline import stage_keys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
 from _report import finish  # noqa: E402
@@ -52,6 +62,19 @@ def profile(trained: fit.Trained, obs: np.ndarray, terminals: np.ndarray, offset
     return out, len(d[0])
 
 
+def coverage(trained: fit.Trained, obs: np.ndarray, slots, delta: float, candidates: int, seed: int) -> list[dict]:
+    """Per slot count K: IWE's keypoints at ``delta`` on the method's distance (planner ``aqm``), whether
+    they overflowed, how many of the candidates they left uncovered, and the seconds (compile included)."""
+    agent = planners.around(trained.agent, trained.learner.distance, 'aqm', trained.method)
+    k_map = stage_keys(jax.random.PRNGKey(seed))[1]
+    out = []
+    for k in slots:
+        _, m = trimmed_map(agent, obs, MapConfig(delta=delta, max_keypoints=int(k), candidates=candidates), k_map)
+        out.append(dict(slots=int(k), keypoints=m['keypoints'], overflow=m['overflow'], uncovered=m['uncovered'],
+                        candidates=m['candidates'], seconds=round(m['seconds'], 1)))
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--checkpoint', action='append', required=True, help='a trained run folder (repeat for several)')
@@ -59,10 +82,17 @@ def main() -> None:
     p.add_argument('--offsets', type=int, nargs='+', default=list(OFFSETS))
     p.add_argument('--pairs', type=int, default=256)
     p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--coverage', type=int, nargs='+', default=[], metavar='K',
+                   help="IWE's keypoints at --delta with K slots each, and the candidates K slots left uncovered")
+    p.add_argument('--delta', type=float, default=12.0, help="IWE's repel radius for --coverage (cpu-giant's: 12)")
+    p.add_argument('--candidates', type=int, default=MapConfig.candidates,
+                   help='dataset states IWE selects from for --coverage (the map default)')
     p.add_argument('--out')
     a = p.parse_args()
     if min(a.offsets) < 0:
         p.error('--offsets must be >= 0')
+    if a.coverage and (min(a.coverage) < 1 or not a.delta > 0 or a.candidates < 1):
+        p.error('--coverage slot counts, --delta and --candidates must be positive')
     data = ds_io.read_ogbench(a.dataset)
     obs = np.asarray(data['observations'], np.float32)
     rows = []
@@ -81,8 +111,14 @@ def main() -> None:
         cells = ' '.join(f'{r["q10"]:5.0f}/{r["q50"]:5.0f}/{r["q90"]:5.0f}'.rjust(18) for r in prof.values())
         shares = ' '.join(f'{r["not_above_d0"]:18.2f}' for r in prof.values())
         print(f'{ck[-44:]:44s} {trained.method:6s} {cells}\n{"":44s} {"<=d0":6s} {shares}')
-        rows.append(dict(checkpoint=ck, method=trained.method, step=trained.step, pairs=n,
-                         seconds=round(time.perf_counter() - t0, 2), offsets={str(k): v for k, v in prof.items()}))
+        row = dict(checkpoint=ck, method=trained.method, step=trained.step, pairs=n,
+                   seconds=round(time.perf_counter() - t0, 2), offsets={str(k): v for k, v in prof.items()})
+        if a.coverage:
+            row.update(delta=a.delta, coverage=coverage(trained, obs, a.coverage, a.delta, a.candidates, a.seed))
+            for c in row['coverage']:
+                print(f'{"":44s} IWE at delta {a.delta:g} with {c["slots"]} slots: {c["keypoints"]} keypoints, '
+                      f'{c["uncovered"]:,} of {c["candidates"]:,} candidates left uncovered ({c["seconds"]} s)')
+        rows.append(row)
     finish(rows, a.out)
 
 
