@@ -138,6 +138,17 @@ def test_overflow_flag_and_random_and_batch_variants():
     left = np.maximum(dm, dm.T)[:, zi].min(axis=1) >= 1.5
     left[zi] = False
     assert int(kp.uncovered) == int(left.sum()) and 144 - 5 * 10 <= int(kp.uncovered) < 144 - 10
+    # the coverage curve: after each keypoint the candidates outside the first i + 1 keypoints' delta
+    curve = np.asarray(kp.left)
+    for i in range(10):
+        out = np.maximum(dm, dm.T)[:, zi[: i + 1]].min(axis=1) >= 1.5
+        out[zi[: i + 1]] = False
+        assert curve[i] == out.sum(), i
+    assert curve[9] == int(kp.uncovered) and np.all(np.diff(curve) <= 0)
+    # more slots do not change the greedy order: a 30-slot run's first 10 keypoints and curve are these
+    more = keypoints.iwe(d, jnp.asarray(pts), jax.random.PRNGKey(0), 1.5, 30)
+    np.testing.assert_array_equal(np.asarray(more.index)[:10], np.asarray(kp.index))
+    np.testing.assert_array_equal(np.asarray(more.left)[:10], curve)
     r = keypoints.uniform_random(jnp.asarray(pts), jax.random.PRNGKey(0), 20, valid=jnp.arange(len(pts)) < 15)
     assert int(r.count) == 15 and set(np.asarray(r.index)[np.asarray(r.mask)].tolist()) == set(range(15))
     b = keypoints.iwe_best_of_batches(d, jnp.asarray(pts), jax.random.PRNGKey(0), 4.0, 64, n_batches=4, batch_size=64)

@@ -36,6 +36,9 @@ class Keypoints:
         uncovered: int32, how many valid candidates were left neither a keypoint nor within delta of one
             when the selector stopped (0 without overflow, and for selectors without a radius): how far
             ``max_keypoints`` fell short.
+        left: int32 ``[K]``, the candidates still uncovered once keypoint ``i`` was added (the coverage
+            curve; ``left[count - 1] == uncovered``; 0 past ``count`` and for selectors without a radius):
+            one run with many slots says what every smaller slot count would have left.
     """
 
     index: jax.Array
@@ -45,6 +48,7 @@ class Keypoints:
     attach: jax.Array
     overflow: jax.Array
     uncovered: jax.Array
+    left: jax.Array
 
 
 def sym(dist: Dist) -> Dist:
@@ -84,6 +88,7 @@ def _greedy(dist: Dist, latents, key, delta, max_keypoints, valid, chunk, pick_f
         alive=(valid & (d0 >= delta)).at[first].set(False),  # candidates not yet covered
         count=jnp.ones((), jnp.int32),
     )
+    init['left'] = jnp.zeros((k,), jnp.int32).at[0].set(init['alive'].sum())
 
     def cond(c):
         return c['alive'].any() & (c['count'] < k)
@@ -97,6 +102,7 @@ def _greedy(dist: Dist, latents, key, delta, max_keypoints, valid, chunk, pick_f
         d = _to_one(dist_sym, latents, valid, latents[new], chunk)
         i = c['count']
         closer = d < c['mind']
+        alive = (c['alive'] & (d >= delta)).at[new].set(False)
         return dict(
             index=c['index'].at[i].set(new),
             parent=c['parent'].at[i].set(c['near'][new]),
@@ -104,7 +110,8 @@ def _greedy(dist: Dist, latents, key, delta, max_keypoints, valid, chunk, pick_f
             near=jnp.where(closer, i, c['near']),
             mind=jnp.minimum(c['mind'], d),
             # The new keypoint always leaves the candidates, even if a learned d(z, z) is not exactly 0.
-            alive=(c['alive'] & (d >= delta)).at[new].set(False),
+            alive=alive,
+            left=c['left'].at[i].set(alive.sum()),
             count=i + 1,
         )
 
@@ -112,7 +119,7 @@ def _greedy(dist: Dist, latents, key, delta, max_keypoints, valid, chunk, pick_f
     mask = jnp.arange(k) < c['count']
     return Keypoints(index=c['index'], mask=mask, count=c['count'], parent=jnp.where(mask, c['parent'], -1),
                      attach=jnp.where(mask, c['attach'], 0.0), overflow=c['alive'].any(),
-                     uncovered=c['alive'].sum().astype(jnp.int32))
+                     uncovered=c['alive'].sum().astype(jnp.int32), left=c['left'])
 
 
 def iwe(dist: Dist, latents: jax.Array, key: jax.Array, delta: float, max_keypoints: int,
@@ -156,7 +163,8 @@ def uniform_random(latents: jax.Array, key: jax.Array, budget: int, valid: jax.A
     k = budget
     return Keypoints(index=jnp.where(mask, idx, -1).astype(jnp.int32), mask=mask, count=mask.sum().astype(jnp.int32),
                      parent=jnp.full((k,), -1, jnp.int32), attach=jnp.zeros((k,), jnp.float32),
-                     overflow=jnp.zeros((), bool), uncovered=jnp.zeros((), jnp.int32))
+                     overflow=jnp.zeros((), bool), uncovered=jnp.zeros((), jnp.int32),
+                     left=jnp.zeros((k,), jnp.int32))
 
 
 def iwe_best_of_batches(dist: Dist, latents: jax.Array, key: jax.Array, delta: float, max_keypoints: int,
