@@ -93,13 +93,18 @@ def keypoint_graph(dist, latents: jax.Array, observations: jax.Array, key: jax.A
         edge radius; the :class:`~aqm_mjx.mapping.keypoints.Keypoints` selected).
     """
     kp = SELECTORS[cfg.selector](dist, latents, key, cfg, valid)
+    return _joined(dist, latents, observations, kp, cfg), kp
+
+
+def _joined(dist, latents: jax.Array, observations: jax.Array, kp: kps.Keypoints, cfg: MapConfig) -> Graph:
+    """The :class:`Graph` of keypoints ``kp`` among the encoded candidates: their states and tau edges."""
     idx = jnp.maximum(kp.index, 0)
     keep = kp.mask[:, None]
     z = jnp.where(keep, latents[idx], 0.0)
     obs = jnp.where(keep, observations[idx], 0.0)
     tau = cfg.edge_radius
     w = build_graph(dist, z, kp.mask, cfg.delta, tau=tau)
-    return Graph(z=z, obs=obs, mask=kp.mask, w=w, tau=jnp.float32(tau)), kp
+    return Graph(z=z, obs=obs, mask=kp.mask, w=w, tau=jnp.float32(tau))
 
 
 def build_map(agent: Agent, observations: jax.Array, cfg: MapConfig, key: jax.Array,
@@ -113,17 +118,31 @@ def build_map(agent: Agent, observations: jax.Array, cfg: MapConfig, key: jax.Ar
         (:class:`Graph`, :class:`~aqm_mjx.mapping.keypoints.Keypoints` with indices into the candidates).
     """
     aux = agent.aux if aux is None else aux
+    cand, lat, kp = select_keypoints(agent, observations, cfg, key, aux)
+    return _joined(lambda x, y: agent.dist(aux, x, y), lat, cand, kp, cfg), kp
+
+
+def select_keypoints(agent: Agent, observations: jax.Array, cfg: MapConfig, key: jax.Array,
+                     aux: Any = None) -> tuple[jax.Array, jax.Array, kps.Keypoints]:
+    """The keypoints :func:`build_map` selects under ``key``, without joining them (pure, jittable):
+    ``(candidates [M, D], their latents [M, L], Keypoints)``, ``M = n_candidates(N, cfg)``."""
+    aux = agent.aux if aux is None else aux
     k_sel = jax.random.split(key)[1]
     cand = observations[candidate_rows(observations.shape[0], cfg, key)]
     lat = jax.vmap(lambda o: agent.encode(aux, o))(cand)
-    return keypoint_graph(lambda x, y: agent.dist(aux, x, y), lat, cand, k_sel, cfg)
+    return cand, lat, SELECTORS[cfg.selector](lambda x, y: agent.dist(aux, x, y), lat, k_sel, cfg, None)
+
+
+def n_candidates(n: int, cfg: MapConfig) -> int:
+    """How many of ``n`` dataset states :func:`build_map` encodes as candidates: ``min(n, cfg.candidates)``."""
+    return min(int(n), int(cfg.candidates))
 
 
 def candidate_rows(n: int, cfg: MapConfig, key: jax.Array) -> jax.Array:
     """Rows of ``n`` dataset states that :func:`build_map` encodes as candidates under ``key``:
-    ``min(n, cfg.candidates)`` drawn uniformly without replacement (all of them, in order, when
+    :func:`n_candidates` of them drawn uniformly without replacement (all of them, in order, when
     there are no more). A file of exactly these states, in this order, gives the same map."""
-    m = min(n, int(cfg.candidates))
+    m = n_candidates(n, cfg)
     return jax.random.permutation(jax.random.split(key)[0], n)[:m] if m < n else jnp.arange(n)
 
 
@@ -156,7 +175,7 @@ def trimmed_map(agent: Agent, observations, cfg: MapConfig, key: jax.Array, stat
     n_kp = int(kp.count)
     graph = graph if static else _trim_to_count(graph, n_kp)
     return graph, dict(keypoints=n_kp, overflow=bool(kp.overflow), uncovered=int(kp.uncovered),
-                       candidates=min(int(np.shape(observations)[0]), int(cfg.candidates)),
+                       candidates=n_candidates(np.shape(observations)[0], cfg),
                        seconds=time.perf_counter() - t0)
 
 

@@ -33,12 +33,9 @@ class Keypoints:
             and for selectors without a wavefront), for the optional parent edges.
         attach: float32 ``[K]`` d_sym to that parent (the paper's rho).
         overflow: bool, True when candidates remained uncovered at ``max_keypoints``.
-        uncovered: int32, how many valid candidates were left neither a keypoint nor within delta of one
-            when the selector stopped (0 without overflow, and for selectors without a radius): how far
-            ``max_keypoints`` fell short.
-        left: int32 ``[K]``, the candidates still uncovered once keypoint ``i`` was added (the coverage
-            curve; ``left[count - 1] == uncovered``; 0 past ``count`` and for selectors without a radius):
-            one run with many slots says what every smaller slot count would have left.
+        left: int32 ``[K]``, how many valid candidates were still neither a keypoint nor within delta of
+            one once keypoint ``i`` was added (the coverage curve; 0 past ``count`` and for selectors
+            without a radius): one run with many slots says what every smaller slot count would have left.
     """
 
     index: jax.Array
@@ -47,8 +44,13 @@ class Keypoints:
     parent: jax.Array
     attach: jax.Array
     overflow: jax.Array
-    uncovered: jax.Array
     left: jax.Array
+
+    @property
+    def uncovered(self) -> jax.Array:
+        """int32: the candidates left uncovered when the selector stopped (``left[count - 1]``; 0 without
+        overflow): how far ``max_keypoints`` fell short."""
+        return self.left[self.count - 1]
 
 
 def sym(dist: Dist) -> Dist:
@@ -118,8 +120,7 @@ def _greedy(dist: Dist, latents, key, delta, max_keypoints, valid, chunk, pick_f
     c = jax.lax.while_loop(cond, body, init)
     mask = jnp.arange(k) < c['count']
     return Keypoints(index=c['index'], mask=mask, count=c['count'], parent=jnp.where(mask, c['parent'], -1),
-                     attach=jnp.where(mask, c['attach'], 0.0), overflow=c['alive'].any(),
-                     uncovered=c['alive'].sum().astype(jnp.int32), left=c['left'])
+                     attach=jnp.where(mask, c['attach'], 0.0), overflow=c['alive'].any(), left=c['left'])
 
 
 def iwe(dist: Dist, latents: jax.Array, key: jax.Array, delta: float, max_keypoints: int,
@@ -163,8 +164,7 @@ def uniform_random(latents: jax.Array, key: jax.Array, budget: int, valid: jax.A
     k = budget
     return Keypoints(index=jnp.where(mask, idx, -1).astype(jnp.int32), mask=mask, count=mask.sum().astype(jnp.int32),
                      parent=jnp.full((k,), -1, jnp.int32), attach=jnp.zeros((k,), jnp.float32),
-                     overflow=jnp.zeros((), bool), uncovered=jnp.zeros((), jnp.int32),
-                     left=jnp.zeros((k,), jnp.int32))
+                     overflow=jnp.zeros((), bool), left=jnp.zeros((k,), jnp.int32))
 
 
 def iwe_best_of_batches(dist: Dist, latents: jax.Array, key: jax.Array, delta: float, max_keypoints: int,

@@ -30,15 +30,12 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from aqm_mjx.agent import planners
 from aqm_mjx.data import dataset as ds_io
 from aqm_mjx.learn import fit
-from aqm_mjx.mapping import keypoints as kps
-from aqm_mjx.mapping.build import MapConfig, candidate_rows, distances_along
-from aqm_mjx.mapping.states import encode_all
+from aqm_mjx.mapping.build import MapConfig, distances_along, select_keypoints
 from aqm_mjx.pipeline import stage_keys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: _report
@@ -72,12 +69,8 @@ def coverage(trained: fit.Trained, obs: np.ndarray, slots, delta: float, candida
     (the greedy order does not depend on K), so ``Keypoints.left`` gives every K."""
     agent = planners.around(trained.agent, trained.learner.distance, 'aqm', trained.method)
     cfg = MapConfig(delta=delta, max_keypoints=max(slots), candidates=candidates)
-    k_map = stage_keys(jax.random.PRNGKey(seed))[1]
-    cand = jnp.asarray(obs)[candidate_rows(obs.shape[0], cfg, k_map)]
     t0 = time.perf_counter()
-    lat = encode_all(agent.encode, agent.aux, cand)
-    kp = jax.jit(lambda z, k: kps.iwe(lambda x, y: agent.dist(agent.aux, x, y), z, k, delta, cfg.max_keypoints))(
-        lat, jax.random.split(k_map)[1])  # the key build_map hands the selector
+    cand, _, kp = jax.jit(lambda o, k: select_keypoints(agent, o, cfg, k))(obs, stage_keys(jax.random.PRNGKey(seed))[1])
     count, left = int(kp.count), np.asarray(kp.left)
     seconds = round(time.perf_counter() - t0, 1)
     return [dict(slots=int(k), keypoints=min(count, int(k)), overflow=bool(left[min(count, k) - 1] > 0),
